@@ -1,0 +1,168 @@
+"""Scanner-head geometry: poses, and the per-point laser / camera directions the features are built from.
+
+Frames (see docs/conventions.md):
+- World (``frame_id`` of the scan, REP 103 axes): the artifact's frame; lengths in millimetres inside the package.
+- Head: the laser line (fan) runs along head +X, the head scans along head +Y, the laser points along head -Z.
+  The laser source sits at the head origin; the camera sits ``baseline_mm`` along head +Y from the source and
+  looks back at the laser plane (triangulation). While scanning, the head translates along its own +Y axis, so the
+  source that lit a point lies on the head's Y axis at that point's head-Y coordinate.
+
+The study's set-up is the identity orientation with the head ~90 mm above the artifact centre: then
+``R_y = 90 - Z`` is ``standoff`` below.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["HeadPose", "PointGeometry", "point_geometry", "quat_to_matrix", "matrix_to_quat", "unit"]
+
+
+def unit(v: np.ndarray, axis: int = -1) -> np.ndarray:
+    """Normalise vectors along ``axis``; zero vectors stay zero (no NaN)."""
+    n = np.linalg.norm(v, axis=axis, keepdims=True)
+    return np.divide(v, n, out=np.zeros_like(v, dtype=np.result_type(v, np.float32)), where=n > 0)
+
+
+def quat_to_matrix(q: np.ndarray | list[float]) -> np.ndarray:
+    """Rotation matrix (3x3) from a quaternion ``(x, y, z, w)`` (ROS order). Raises ValueError on a zero quaternion."""
+    x, y, z, w = (float(c) for c in q)
+    n = x * x + y * y + z * z + w * w
+    if not np.isfinite(n) or n < 1e-12:
+        raise ValueError(f"quaternion {tuple(q)} is zero or not finite")
+    s = 2.0 / n
+    return np.array(
+        [
+            [1 - s * (y * y + z * z), s * (x * y - z * w), s * (x * z + y * w)],
+            [s * (x * y + z * w), 1 - s * (x * x + z * z), s * (y * z - x * w)],
+            [s * (x * z - y * w), s * (y * z + x * w), 1 - s * (x * x + y * y)],
+        ]
+    )
+
+
+def matrix_to_quat(r: np.ndarray) -> np.ndarray:
+    """Quaternion ``(x, y, z, w)`` with w >= 0 from a rotation matrix."""
+    r = np.asarray(r, dtype=float)
+    tr = np.trace(r)
+    if tr > 0:
+        s = np.sqrt(tr + 1.0) * 2
+        q = [(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, 0.25 * s]
+    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
+        s = np.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2]) * 2
+        q = [0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s, (r[2, 1] - r[1, 2]) / s]
+    elif r[1, 1] > r[2, 2]:
+        s = np.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2]) * 2
+        q = [(r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s, (r[0, 2] - r[2, 0]) / s]
+    else:
+        s = np.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1]) * 2
+        q = [(r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s, (r[1, 0] - r[0, 1]) / s]
+    q = np.asarray(q)
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+@dataclass(frozen=True)
+class HeadPose:
+    """Pose of the scanner head at scan start in the scan's frame.
+
+    Attributes:
+        position: head origin (the laser source at t = 0), mm, shape (3,).
+        rotation: 3x3 matrix whose columns are the head X, Y, Z axes expressed in the scan frame.
+    """
+
+    position: np.ndarray
+    rotation: np.ndarray
+
+    def __post_init__(self) -> None:
+        p = np.asarray(self.position, dtype=float).reshape(3)
+        r = np.asarray(self.rotation, dtype=float).reshape(3, 3)
+        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(r))):
+            raise ValueError("head pose must be finite")
+        if not np.allclose(r.T @ r, np.eye(3), atol=1e-6) or np.linalg.det(r) < 0:
+            raise ValueError("head rotation must be a proper rotation matrix")
+        object.__setattr__(self, "position", p)
+        object.__setattr__(self, "rotation", r)
+
+    @classmethod
+    def looking_down(cls, standoff_mm: float = 90.0, y_mm: float = 0.0, x_mm: float = 0.0) -> HeadPose:
+        """The study's set-up: head axes = world axes, laser ``standoff_mm`` above the origin, pointing down."""
+        return cls(np.array([x_mm, y_mm, standoff_mm]), np.eye(3))
+
+    @classmethod
+    def from_quaternion(cls, position: np.ndarray | list[float], q: np.ndarray | list[float]) -> HeadPose:
+        """From a position (mm) and a quaternion ``(x, y, z, w)``."""
+        return cls(np.asarray(position, dtype=float), quat_to_matrix(q))
+
+    @property
+    def quaternion(self) -> np.ndarray:
+        """Orientation as ``(x, y, z, w)``."""
+        return matrix_to_quat(self.rotation)
+
+    def to_head(self, points: np.ndarray) -> np.ndarray:
+        """Points (…, 3) in the scan frame → head frame (mm)."""
+        return (np.asarray(points) - self.position) @ self.rotation
+
+    def to_world(self, points: np.ndarray) -> np.ndarray:
+        """Points (…, 3) in the head frame → scan frame (mm)."""
+        return np.asarray(points) @ self.rotation.T + self.position
+
+    def rotated(self, r_head: np.ndarray, pivot: np.ndarray | None = None) -> HeadPose:
+        """The pose turned by ``r_head`` (a rotation expressed in the head frame) about ``pivot`` (scan frame, mm;
+        default: the head origin). Used by the rescan recommendation to tilt / turn the head about a region."""
+        r_new = self.rotation @ np.asarray(r_head, dtype=float)
+        if pivot is None:
+            return HeadPose(self.position, r_new)
+        pivot = np.asarray(pivot, dtype=float)
+        # Rotate the head origin about the pivot by the same world rotation.
+        r_world = r_new @ self.rotation.T
+        return HeadPose(pivot + r_world @ (self.position - pivot), r_new)
+
+
+@dataclass
+class PointGeometry:
+    """Per-point geometry of a scan, all in the scan frame.
+
+    Attributes:
+        L: unit vectors from each point toward the laser source that lit it, (N, 3).
+        V: unit vectors from each point toward the camera, (N, 3).
+        source_distance: distance point → laser source, mm, (N,).
+        standoff: distance from the source along the laser axis (head -Z), mm, (N,); the study's R_y = 90 - Z.
+        u: position along the laser line (head X), mm, (N,).
+        s: position along the scan direction (head Y), mm, (N,).
+    """
+
+    L: np.ndarray
+    V: np.ndarray
+    source_distance: np.ndarray
+    standoff: np.ndarray
+    u: np.ndarray
+    s: np.ndarray
+
+
+def point_geometry(points: np.ndarray, pose: HeadPose, baseline_mm: float, dtype: type = np.float64) -> PointGeometry:
+    """Laser and camera directions for each point of a scan taken from ``pose``.
+
+    Args:
+        points: (N, 3) points in the scan frame, mm. Must be finite.
+        pose: head pose at scan start.
+        baseline_mm: camera offset from the laser source along head +Y, mm.
+        dtype: float type of the outputs (float32 on the live hot path).
+    """
+    pts = np.asarray(points)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
+    ph = pose.to_head(pts).astype(dtype, copy=False)
+    # Source lies on the head's Y axis at the point's head-Y coordinate: (0, y, 0) - p_h = (-x, 0, -z).
+    to_src = np.empty_like(ph)
+    to_src[:, 0] = -ph[:, 0]
+    to_src[:, 1] = 0.0
+    to_src[:, 2] = -ph[:, 2]
+    to_cam = to_src.copy()
+    to_cam[:, 1] = baseline_mm
+    rot = pose.rotation.astype(dtype)
+    dist = np.linalg.norm(to_src, axis=1)
+    L = unit(to_src @ rot.T)
+    V = unit(to_cam @ rot.T)
+    return PointGeometry(L=L, V=V, source_distance=dist, standoff=-ph[:, 2], u=ph[:, 0], s=ph[:, 1])

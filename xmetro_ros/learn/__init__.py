@@ -1,0 +1,1 @@
+"""xmetro_ros.learn."""

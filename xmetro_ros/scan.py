@@ -1,0 +1,82 @@
+"""The Scan container shared by the simulator, the features, the bag tools and the node (ROS-free).
+
+A scan holds points in the scan frame (``frame_id``), millimetres, either organized (H profiles × W points per
+profile, NaN where there is no return) or unorganized (N × 3). Extra per-point fields (intensity, line, t, u, ...)
+have the points' leading shape. The settings and head pose say how it was taken.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .artifacts import Artifact
+from .geometry import HeadPose
+from .scanner import ScanSettings
+
+__all__ = ["Scan"]
+
+
+@dataclass
+class Scan:
+    """One scan.
+
+    Attributes:
+        points: (H, W, 3) organized or (N, 3) unorganized, float, mm, scan frame; NaN rows = no return.
+        settings: scan settings (mm / ms units).
+        pose: head pose at scan start (mm).
+        scanner_id: id of the scanner model that took it.
+        fields: extra per-point fields (name → array of shape points.shape[:-1]).
+        frame_id: frame of the points (ROS ``header.frame_id``).
+        stamp_ns: acquisition time, ns since the epoch (ROS ``header.stamp``).
+        artifact: the nominal artifact, when known (simulated or calibrated scans).
+        expected_error: noise-free systematic error nominal − measured per axis, mm, shape of ``points``
+            (simulated scans only); the oracle floor of every model.
+        meta: free-form provenance (seed, effects, configuration index, ...), JSON-serialisable.
+    """
+
+    points: np.ndarray
+    settings: ScanSettings
+    pose: HeadPose
+    scanner_id: str
+    fields: dict[str, np.ndarray] = field(default_factory=dict)
+    frame_id: str = "artifact"
+    stamp_ns: int = 0
+    artifact: Artifact | None = None
+    expected_error: np.ndarray | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        p = np.asarray(self.points)
+        if p.ndim not in (2, 3) or p.shape[-1] != 3:
+            raise ValueError(f"scan points must be (N, 3) or (H, W, 3), got shape {p.shape}")
+        for name, arr in self.fields.items():
+            if np.shape(arr) != p.shape[:-1]:
+                raise ValueError(f"field {name!r} has shape {np.shape(arr)}, expected {p.shape[:-1]}")
+        if self.expected_error is not None and np.shape(self.expected_error) != p.shape:
+            raise ValueError("expected_error must have the shape of points")
+
+    @property
+    def organized(self) -> bool:
+        return np.ndim(self.points) == 3
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """(H, W) for organized scans, (N,) otherwise."""
+        return tuple(np.shape(self.points)[:-1])
+
+    def valid_mask(self) -> np.ndarray:
+        """Flat boolean mask of points with finite x, y, z (shape (H*W,) or (N,))."""
+        return np.all(np.isfinite(self.points.reshape(-1, 3)), axis=1)
+
+    def flat(self, valid_only: bool = True) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]:
+        """(points (M, 3), fields flattened, flat indices of those points in the scan)."""
+        pts = self.points.reshape(-1, 3)
+        idx = np.flatnonzero(self.valid_mask()) if valid_only else np.arange(len(pts))
+        return pts[idx], {k: np.asarray(v).reshape(-1)[idx] for k, v in self.fields.items()}, idx
+
+    @property
+    def n_valid(self) -> int:
+        return int(self.valid_mask().sum())
