@@ -14,13 +14,20 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
 
-if "XMETRO_IN_NETNS" not in os.environ and os.geteuid() == 0:
-    os.execv(str(ROOT / "tools" / "netns_run"), [str(ROOT / "tools" / "netns_run"), sys.executable, "-m", "pytest",
-                                                 *sys.argv[1:]])
-
 from xmetro_ros.ros_env import apply_ros_env  # noqa: E402
 
-apply_ros_env()
+
+def pytest_configure(config) -> None:
+    if "XMETRO_IN_NETNS" not in os.environ and os.geteuid() == 0:
+        # Give the terminal back (pytest captures fds while loading conftests), then re-execute in a private netns.
+        capman = config.pluginmanager.getplugin("capturemanager")
+        if capman is not None:
+            capman.suspend_global_capture(in_=True)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        runner = str(ROOT / "tools" / "netns_run")
+        os.execv(runner, [runner, sys.executable, "-m", "pytest", *config.invocation_params.args])
+    apply_ros_env()
 
 
 def shared_data() -> Path:
