@@ -1,0 +1,369 @@
+"""`xmetro demo`: the whole product in one command (``make demo``).
+
+1. start ``xmetro_node`` as a child process (localhost-only DDS: ``ros_env``; a private network namespace when
+   run through tools/netns_run), with the shipped default model (or ``--model``);
+2. replay ``bags/demo.mcap`` through it (``--fast``: each scan once the previous one is judged) and record the
+   node's outputs to ``out/demo/outputs.mcap``;
+3. pick the worst region (around the point with the largest predicted deviation of the scan with the largest
+   p95 |error|) and ask the node why (``~/explain``, SHAP) and how to rescan it (``~/recommend_settings``);
+4. write ``out/demo/report.html`` (per-scan quality table, deviation maps predicted vs actual, SHAP, the
+   recommendation) and print a short summary.
+
+Exit status 0 when every step worked, 1 otherwise (the report is still written with what is there).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["register", "run", "run_demo", "DemoResult", "NodeProcess", "default_demo_bag"]
+
+REGION_RADIUS_M = 0.004
+EXPLAIN_MAX_POINTS = 200
+
+
+def default_demo_bag() -> Path:
+    """bags/demo.mcap of the checkout (the demo runs from a clone)."""
+    from .resources import repo_root
+
+    root = repo_root()
+    if root is None:
+        raise FileNotFoundError("xmetro demo needs the repository's bags/demo.mcap: run it from a clone "
+                                "(or pass --bag)")
+    return root / "bags" / "demo.mcap"
+
+
+class NodeProcess:
+    """``xmetro_node`` in a child process with the localhost-only ROS environment; stopped with SIGINT."""
+
+    def __init__(self, params: dict[str, Any], log_path: Path, env: dict[str, str]) -> None:
+        cmd = [sys.executable, "-m", "xmetro_ros.node", "--ros-args"]
+        for k, v in params.items():
+            cmd += ["-p", f"{k}:={v}"]
+        log_path.parent.mkdir(parents=True, exist_ok=True)
+        self.log_path = log_path
+        self._log = open(log_path, "wb")
+        self.proc = subprocess.Popen(cmd, stdout=self._log, stderr=subprocess.STDOUT, env=env)
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def stop(self, timeout: float = 10.0) -> int | None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.terminate()
+                try:
+                    self.proc.wait(5.0)
+                except subprocess.TimeoutExpired:
+                    self.proc.kill()
+                    self.proc.wait()
+        self._log.close()
+        return self.proc.returncode
+
+    def log_tail(self, n: int = 20) -> str:
+        try:
+            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-n:])
+        except OSError:
+            return ""
+
+    def __enter__(self) -> NodeProcess:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+class DemoResult:
+    """What the demo did (for the summary and the tests)."""
+
+    def __init__(self) -> None:
+        self.replay: Any = None
+        self.outputs: list[Any] = []
+        self.worst: dict[str, Any] | None = None
+        self.explain: dict[str, Any] | None = None
+        self.recommend: dict[str, Any] | None = None
+        self.report: Path | None = None
+        self.timings: dict[str, float] = {}
+        self.errors: list[str] = []
+
+    @property
+    def ok(self) -> bool:
+        return not self.errors
+
+
+def _stamp(ns: int) -> Any:
+    from builtin_interfaces.msg import Time
+
+    return Time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
+
+
+def _worst_region(outputs: list[Any]) -> dict[str, Any] | None:
+    """Scan with the largest p95 |error| norm and its point with the largest predicted |deviation| (metres)."""
+    from .predict import deviation_arrays
+
+    best = None
+    for i, o in enumerate(outputs):
+        if o.deviations is None:
+            continue
+        p95 = float(np.linalg.norm(np.asarray(o.quality.p95_abs_error, dtype=float)))
+        if best is None or p95 > best[0]:
+            best = (p95, i)
+    if best is None:
+        return None
+    o = outputs[best[1]]
+    pts, dev, _flags = deviation_arrays(o.deviations)
+    n = np.linalg.norm(dev, axis=1)
+    ok = np.isfinite(n) & np.isfinite(pts).all(axis=1)
+    if not ok.any():
+        return None
+    j = int(np.flatnonzero(ok)[np.argmax(n[ok])])
+    return {"scan": best[1], "stamp_ns": o.stamp_ns, "center_m": pts[j] * 1e-3, "max_dev_mm": float(n[j]),
+            "p95_norm_mm": best[0] * 1e3}
+
+
+def _ask_services(node_name: str, worst: dict[str, Any], timeout: float) -> tuple[dict, dict]:
+    """Call ~/explain and ~/recommend_settings for the worst region; return report dicts (or {"error": ...})."""
+    from geometry_msgs.msg import Point
+    from rclpy.node import Node
+
+    from .ros_util import NodeSpinner, call_service
+    from .srv import Explain, RecommendSettings
+
+    c = worst["center_m"]
+    region = (f"scan #{worst['scan']}: sphere of radius {REGION_RADIUS_M * 1e3:g} mm around "
+              f"({c[0] * 1e3:.1f}, {c[1] * 1e3:.1f}, {c[2] * 1e3:.1f}) mm (largest predicted deviation "
+              f"{worst['max_dev_mm'] * 1e3:.1f} µm)")
+    explain: dict[str, Any]
+    recommend: dict[str, Any]
+    with NodeSpinner(lambda ctx: Node("xmetro_demo_client", context=ctx)) as sp:
+        ex_cli = sp.node.create_client(Explain, f"/{node_name}/explain")
+        rc_cli = sp.node.create_client(RecommendSettings, f"/{node_name}/recommend_settings")
+        req = Explain.Request()
+        req.scan_stamp = _stamp(worst["stamp_ns"])
+        req.region_center = Point(x=float(c[0]), y=float(c[1]), z=float(c[2]))
+        req.region_radius = REGION_RADIUS_M
+        req.axes = 0
+        req.max_points = EXPLAIN_MAX_POINTS
+        try:
+            r = call_service(ex_cli, req, timeout=timeout)
+            if not r.success:
+                explain = {"error": r.message}
+            else:
+                F, A = len(r.feature_names), len(r.axis_names)
+                explain = {
+                    "region": region, "feature_names": list(r.feature_names),
+                    "feature_units": list(r.feature_units), "axis_names": list(r.axis_names),
+                    "mean_abs_shap_um": (np.asarray(r.mean_abs_shap, dtype=float).reshape(F, A) * 1e6).tolist(),
+                    "base_values_um": [round(v * 1e6, 2) for v in r.base_values],
+                    "n_points": len(r.point_indices), "message": r.message, "model_id": r.model_id,
+                }
+        except Exception as e:  # report it; the demo goes on
+            explain = {"error": f"{type(e).__name__}: {e}"}
+        rq = RecommendSettings.Request()
+        rq.scan_stamp = req.scan_stamp
+        rq.region_center = req.region_center
+        rq.region_radius = REGION_RADIUS_M
+        try:
+            r = call_service(rc_cli, rq, timeout=timeout)
+            recommend = _recommend_dict(r, region)
+        except Exception as e:
+            recommend = {"error": f"{type(e).__name__}: {e}"}
+    return explain, recommend
+
+
+def _settings_text(s: Any) -> str:
+    return (f"{s.lateral_density / 1e3:g} pt/mm, {s.direction_density / 1e3:g} profiles/mm, "
+            f"{s.exposure_time * 1e3:g} ms")
+
+
+def _quat_deg(q: Any) -> str:
+    from .geometry import quat_to_matrix
+
+    r = quat_to_matrix([q.x, q.y, q.z, q.w])
+    angle = float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1.0, 1.0))))
+    return f"rotation of {angle:.1f}° (quaternion x={q.x:.3f} y={q.y:.3f} z={q.z:.3f} w={q.w:.3f})"
+
+
+def _recommend_dict(r: Any, region: str) -> dict[str, Any]:
+    if not r.success:
+        return {"error": r.message}
+    um = 1e6
+    rows = [
+        ["region", region],
+        ["recommended settings", _settings_text(r.recommended_settings)],
+        ["recommended head orientation (relative)", _quat_deg(r.recommended_orientation)],
+        ["mean |error| before → after [µm]", f"{r.mean_abs_error_before * um:.2f} → {r.mean_abs_error_after * um:.2f}"],
+        ["p95 |error| before → after [µm]", f"{r.p95_abs_error_before * um:.2f} → {r.p95_abs_error_after * um:.2f}"],
+        ["coverage before → after", f"{r.coverage_before:.3f} → {r.coverage_after:.3f}"],
+        ["meets tolerance", "yes" if r.meets_tolerance else "no"],
+    ]
+    alts = [[i + 1, _settings_text(a.settings), _quat_deg(a.orientation), f"{a.mean_abs_error * um:.2f}",
+             f"{a.p95_abs_error * um:.2f}", f"{a.coverage:.3f}", f"{a.score * um:.2f}"]
+            for i, a in enumerate(list(r.alternatives)[:5])]
+    return {"rows": rows, "alternatives": alts, "message": r.message, "model_id": r.model_id,
+            "alternatives_header": ["rank", "settings", "orientation", "mean |e| [µm]", "p95 |e| [µm]",
+                                    "coverage", "score [µm]"],
+            "p95_before_um": r.p95_abs_error_before * um, "p95_after_um": r.p95_abs_error_after * um,
+            "settings": _settings_text(r.recommended_settings)}
+
+
+def _report_scans(bag: Path, outputs: list[Any]) -> list[Any]:
+    """Report rows: quality, processed points, predicted deviations, actual errors where the artifact is known."""
+    from .predict import deviation_arrays
+    from .report_html import ReportScan
+
+    inputs: dict[int, Any] = {}
+    try:
+        from .scan_io import read_scans
+
+        inputs = {s.stamp_ns: s for s in read_scans(bag)}
+    except Exception:  # bags without xmetro metadata: no known artifact, no actual errors
+        inputs = {}
+    rows = []
+    for i, o in enumerate(outputs):
+        src = inputs.get(o.stamp_ns)
+        label = f"stamp {o.stamp_ns / 1e9:.3f} s"
+        if src is not None:
+            art = src.artifact.to_dict() if src.artifact is not None else {}
+            label = (f"{art.get('type', 'scan')} r={art.get('radius', '?')} mm, {src.settings.label()}"
+                     if art else src.settings.label())
+        rs = ReportScan(index=i, label=label, quality=o.summary_dict())
+        if o.deviations is not None:
+            pts, dev, _ = deviation_arrays(o.deviations)
+            rs.points_mm, rs.predicted_mm = pts, dev
+            if src is not None and src.artifact is not None:
+                actual = np.full_like(pts, np.nan)
+                ok = np.isfinite(pts).all(axis=1) & np.isfinite(dev).all(axis=1)
+                actual[ok] = src.artifact.errors(pts[ok])
+                rs.actual_mm = actual
+        rows.append(rs)
+    return rows
+
+
+def run_demo(
+    out_dir: str | Path = "out/demo",
+    bag: str | Path | None = None,
+    model_dir: str | Path | None = None,
+    timeout: float = 120.0,
+    log: Any = print,
+) -> DemoResult:
+    """Run the demo (see the module docstring); never raises for a failing step: ``DemoResult.errors`` says."""
+    from .predict import read_outputs
+    from .replay import replay_bag
+    from .report_html import write_report
+    from .ros_env import apply_ros_env, ros_env
+
+    res = DemoResult()
+    t0 = time.monotonic()
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    bag = Path(bag) if bag is not None else default_demo_bag()
+    record = out_dir / "outputs.mcap"
+    record.unlink(missing_ok=True)
+    env_vars = apply_ros_env()  # this process (replay, service clients) and the node share the domain
+    params: dict[str, Any] = {"scan_history": 10}
+    if model_dir is not None:
+        params["model_dir"] = str(Path(model_dir).resolve())
+    log(f"xmetro demo: ROS_DOMAIN_ID={env_vars['ROS_DOMAIN_ID']}, localhost-only DDS; node log {out_dir / 'node.log'}")
+    node = NodeProcess(params, out_dir / "node.log", ros_env())
+    try:
+        t = time.monotonic()
+        try:
+            res.replay = replay_bag(bag, fast=True, record=record, discovery_timeout=timeout, answer_timeout=timeout,
+                                    log=lambda s: log("  " + s))
+        except Exception as e:
+            res.errors.append(f"replay failed: {type(e).__name__}: {e}")
+            if not node.alive():
+                res.errors.append(f"xmetro_node exited ({node.proc.returncode}); log tail:\n{node.log_tail()}")
+        res.timings["replay_s"] = time.monotonic() - t
+        if res.replay is not None:
+            res.outputs = read_outputs(record)
+            res.worst = _worst_region(res.outputs)
+            if res.worst is None:
+                res.errors.append("no scan was processed: no region to explain")
+            else:
+                t = time.monotonic()
+                res.explain, res.recommend = _ask_services("xmetro_node", res.worst, timeout)
+                res.timings["services_s"] = time.monotonic() - t
+                for k, v in (("~/explain", res.explain), ("~/recommend_settings", res.recommend)):
+                    if "error" in v:
+                        res.errors.append(f"{k} failed: {v['error']}")
+            if not res.replay.complete:
+                res.errors.append(f"{res.replay.scans_sent - res.replay.answered} scans were not judged")
+    finally:
+        node.stop()
+    t = time.monotonic()
+    summary = _summary_lines(res)
+    scans = _report_scans(bag, res.outputs) if res.outputs else []
+    res.report = write_report(
+        out_dir / "report.html", scans, explain=res.explain, recommend=res.recommend, summary_lines=summary,
+        meta={"bag": str(bag), "model": res.outputs[0].quality.model_id if res.outputs else "?",
+              "outputs": str(record), "generated": time.strftime("%Y-%m-%d %H:%M:%S")},
+    )
+    res.timings["report_s"] = time.monotonic() - t
+    res.timings["total_s"] = time.monotonic() - t0
+    return res
+
+
+def _summary_lines(res: DemoResult) -> list[str]:
+    lines = []
+    if res.replay is not None:
+        r = res.replay
+        lines.append(f"replayed {r.scans_sent} scans ({r.settings_sent} settings) in {r.wall_s:.1f} s; "
+                     f"{r.answered} judged")
+        for o in res.outputs:
+            q = o.summary_dict()
+            vn = ("OK", "WARN", "RESCAN", "ERROR")[q["verdict"]]
+            lines.append(f"  scan @{q['stamp_ns'] / 1e9:.0f}s: {vn:<6s} usable {q['usable_fraction']:.2f}, "
+                         f"p95 |e| x/y/z = " + "/".join(f"{v * 1e3:.1f}" for v in q["p95_abs_error_mm"]) + " µm"
+                         + (" (settings defaulted)" if q["settings_defaulted"] else ""))
+    if res.worst is not None:
+        c = res.worst["center_m"] * 1e3
+        lines.append(f"worst region: scan #{res.worst['scan']} around ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) mm, "
+                     f"max predicted |deviation| {res.worst['max_dev_mm'] * 1e3:.1f} µm")
+    if res.explain and "error" not in res.explain:
+        ms = np.asarray(res.explain["mean_abs_shap_um"]).sum(axis=1)
+        top = np.argsort(-ms)[:3]
+        lines.append("explain (SHAP): top features " + ", ".join(
+            f"{res.explain['feature_names'][i]} ({ms[i]:.2f} µm)" for i in top))
+    if res.recommend and "error" not in res.recommend:
+        lines.append(f"recommend: {res.recommend['settings']}; p95 {res.recommend['p95_before_um']:.1f} → "
+                     f"{res.recommend['p95_after_um']:.1f} µm")
+    lines += [f"ERROR: {e}" for e in res.errors]
+    if res.timings:
+        lines.append("timings: " + ", ".join(f"{k} {v:.1f}" for k, v in res.timings.items()))
+    return lines
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("demo", help="start a node, replay bags/demo.mcap, write out/demo/report.html",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", default="out/demo", help="output directory (default out/demo)")
+    p.add_argument("--bag", default=None, help="bag to replay (default: the repository's bags/demo.mcap)")
+    p.add_argument("--model", default=None, help="model directory (default: the shipped default model)")
+    p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for the node / each answer")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    os.environ.setdefault("PYTHONUNBUFFERED", "1")
+    try:
+        res = run_demo(args.out, args.bag, args.model, args.timeout)
+    except (OSError, ValueError) as e:
+        print(f"xmetro demo: error: {e}", file=sys.stderr)
+        return 1
+    print("\n".join(_summary_lines(res)))
+    print(f"report: {res.report}")
+    return 0 if res.ok else 1

@@ -1,0 +1,152 @@
+"""Judged-scan history and the ROS-free body of ``~/explain`` (SHAP values for points of a judged scan).
+
+The node keeps the last few judged scans (:class:`ScanHistory`, bounded). A request picks a scan (stamp, 0 = the
+latest), points (flat indices, or a sphere region in the scan frame, or every processed point), and axes; the
+answer holds, for every model feature and every requested axis, the SHAP values (``learn.shap_explain.explain``),
+base values, the features, the predictions (= base + Σ SHAP) and the mean |SHAP| per feature over the explained
+points. Units: mm inside, metres in the response (the node converts).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+__all__ = ["ServiceError", "JudgedScan", "ScanHistory", "select_rows", "explain_rows", "axes_from_mask"]
+
+AXIS_NAMES = ("x", "y", "z")
+
+
+class ServiceError(ValueError):
+    """A service request that cannot be answered; the message is returned with success = false."""
+
+
+@dataclass
+class JudgedScan:
+    """What the services need of a judged scan (mm, scan frame).
+
+    Attributes:
+        stamp_ns, frame_id: the scan's header.
+        n_points: points in the (possibly decimated) cloud, = width × height.
+        index: (M,) flat indices of the processed (kept) points.
+        points: (M, 3) mm those points.
+        features: (M, F) float32 model features; predictions (M, 3) mm.
+        context: features.FeatureContext of those points (for the recommender).
+        settings, pose, scanner_id, model_id: how it was taken and judged.
+    """
+
+    stamp_ns: int
+    frame_id: str
+    n_points: int
+    index: np.ndarray
+    points: np.ndarray
+    features: np.ndarray
+    predictions: np.ndarray
+    context: Any
+    settings: Any
+    pose: Any
+    scanner_id: str
+    model_id: str
+
+    def __post_init__(self) -> None:
+        # Only rows with a finite prediction can be explained.
+        self.ok_rows = np.flatnonzero(np.isfinite(self.predictions).all(axis=1))
+        self.row_of = np.full(self.n_points, -1, dtype=np.int64)
+        self.row_of[np.asarray(self.index, dtype=np.int64)[self.ok_rows]] = self.ok_rows
+
+
+class ScanHistory:
+    """The last ``maxlen`` judged scans, thread-safe."""
+
+    def __init__(self, maxlen: int = 3) -> None:
+        self._scans: deque[JudgedScan] = deque(maxlen=maxlen)
+        self._lock = threading.Lock()
+
+    def add(self, judged: JudgedScan) -> None:
+        with self._lock:
+            self._scans.append(judged)
+
+    def __len__(self) -> int:
+        return len(self._scans)
+
+    def get(self, stamp_ns: int = 0) -> JudgedScan:
+        """The scan stamped ``stamp_ns`` (0 = the latest). Raises ServiceError when not kept."""
+        with self._lock:
+            scans = list(self._scans)
+        if not scans:
+            raise ServiceError("no scan judged yet")
+        if stamp_ns == 0:
+            return scans[-1]
+        for s in reversed(scans):
+            if s.stamp_ns == stamp_ns:
+                return s
+        kept = ", ".join(str(s.stamp_ns) for s in scans)
+        raise ServiceError(f"no judged scan stamped {stamp_ns} ns is kept (kept: {kept})")
+
+
+def axes_from_mask(mask: int) -> tuple[int, ...]:
+    """Axis indices from an AXIS_X=1 | AXIS_Y=2 | AXIS_Z=4 mask (0 = all). Raises ServiceError on bad bits."""
+    if mask == 0:
+        return (0, 1, 2)
+    if mask & ~7:
+        raise ServiceError(f"axes mask {mask} has bits other than AXIS_X=1, AXIS_Y=2, AXIS_Z=4")
+    return tuple(i for i in range(3) if mask & (1 << i))
+
+
+def select_rows(judged: JudgedScan, indices: np.ndarray, center_mm: np.ndarray | None, radius_mm: float,
+                cap: int) -> tuple[np.ndarray, str]:
+    """Rows of ``judged`` for a request, and a note.
+
+    Explicit ``indices`` (flat indices into the cloud) must all be processed points and at most ``cap`` of them
+    (ServiceError otherwise). A region (``radius_mm`` > 0 around ``center_mm``) or, with radius 0, every processed
+    point: when more than ``cap``, an evenly spaced deterministic subset of ``cap`` rows is taken (said in the note).
+    """
+    indices = np.asarray(indices, dtype=np.int64)
+    if len(indices):
+        if len(indices) > cap:
+            raise ServiceError(f"{len(indices)} indices requested, more than the cap of {cap} points")
+        bad = (indices < 0) | (indices >= judged.n_points)
+        if bad.any():
+            raise ServiceError(f"indices out of range [0, {judged.n_points}): {indices[bad][:5].tolist()}")
+        rows = judged.row_of[indices]
+        if (rows < 0).any():
+            raise ServiceError(f"indices without a prediction (invalid or outlier points): "
+                               f"{indices[rows < 0][:5].tolist()}")
+        return rows, ""
+    if radius_mm < 0 or not np.isfinite(radius_mm):
+        raise ServiceError(f"region radius must be >= 0, got {radius_mm}")
+    if radius_mm > 0:
+        d2 = np.sum((judged.points[judged.ok_rows] - np.asarray(center_mm, dtype=np.float64)) ** 2, axis=1)
+        rows = judged.ok_rows[d2 <= radius_mm * radius_mm]
+        if len(rows) == 0:
+            raise ServiceError(f"the region (radius {radius_mm * 1e-3:g} m) holds no processed point")
+    else:
+        rows = judged.ok_rows
+    note = ""
+    if len(rows) > cap:
+        note = f"region has {len(rows)} points: explained an evenly spaced subset of {cap}"
+        rows = rows[np.linspace(0, len(rows) - 1, cap).round().astype(np.int64)]
+    return rows, note
+
+
+def explain_rows(model_set: Any, judged: JudgedScan, rows: np.ndarray, axes: tuple[int, ...]) -> dict[str, Any]:
+    """SHAP explanation of ``rows`` of ``judged`` (mm): base (A,), shap (P, F, A), predictions (P, A), X (P, F),
+    mean |SHAP| (F, A), point indices (P,)."""
+    from .learn.shap_explain import explain
+
+    X = judged.features[rows]
+    res = explain(model_set, X, None, axes=axes)
+    shap_vals = np.asarray(res.shap, dtype=np.float64)
+    return {
+        "base_values": np.asarray(res.base_values, dtype=np.float64),
+        "shap": shap_vals,
+        "predictions": np.asarray(res.predictions, dtype=np.float64),
+        "features": X.astype(np.float64),
+        "mean_abs_shap": np.abs(shap_vals).mean(axis=0),
+        "point_indices": np.asarray(judged.index, dtype=np.int64)[rows],
+        "axis_names": [AXIS_NAMES[a] for a in axes],
+    }

@@ -1,0 +1,116 @@
+"""Per-point flag bits and the scan verdict rules (ROS-free).
+
+Flag bits are those of ``ScanQuality.FLAG_*`` (the ``flags`` field of ``~/deviations``):
+
+====  =====================  =====================================================================================
+bit   name                   set when
+====  =====================  =====================================================================================
+1     outlier                removed by statistical outlier removal (no prediction for it)
+2     grazing_incidence      incidence angle acos(N·L) > ``grazing_incidence_deg`` (N·L <= 0: not lit at all)
+4     grazing_view           view angle acos(N·V) > ``grazing_view_deg`` (N·V <= 0: not seen at all)
+8     over_tolerance         predicted |error| (norm over x, y, z) > ``tolerance``
+16    out_of_domain          a model feature lies outside the model's training range widened by
+                             ``domain_margin`` × the range width on each side (ModelSet.domain)
+32    unreliable_normal      normal quality < ``normal_quality_min`` (quality from the normal estimation, 0..1)
+64    invalid_point          x, y or z NaN / Inf (no return) — no prediction for it
+====  =====================  =====================================================================================
+
+Verdict (:func:`verdict`), fractions taken over the *valid* (finite) points so that the empty cells of an organized
+scan do not count against it:
+
+- ERROR: the scan could not be processed (decided by the caller: error code set).
+- RESCAN: ``usable / valid < rescan_usable_fraction`` or ``over_tolerance / valid > rescan_over_tolerance_fraction``
+  or fewer than ``min_valid_points`` valid points.
+- WARN: ``flagged / valid > warn_flagged_fraction``, or the settings were defaulted, or the cloud was decimated.
+- OK otherwise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = [
+    "FLAG_OUTLIER", "FLAG_GRAZING_INCIDENCE", "FLAG_GRAZING_VIEW", "FLAG_OVER_TOLERANCE", "FLAG_OUT_OF_DOMAIN",
+    "FLAG_UNRELIABLE_NORMAL", "FLAG_INVALID_POINT", "FLAG_BITS", "FLAG_NAMES", "VERDICT_OK", "VERDICT_WARN",
+    "VERDICT_RESCAN", "VERDICT_ERROR", "VERDICT_NAMES", "VerdictThresholds", "flag_counts", "verdict",
+    "angle_flags", "domain_flags",
+]
+
+FLAG_OUTLIER = 1
+FLAG_GRAZING_INCIDENCE = 2
+FLAG_GRAZING_VIEW = 4
+FLAG_OVER_TOLERANCE = 8
+FLAG_OUT_OF_DOMAIN = 16
+FLAG_UNRELIABLE_NORMAL = 32
+FLAG_INVALID_POINT = 64
+
+FLAG_BITS = (FLAG_OUTLIER, FLAG_GRAZING_INCIDENCE, FLAG_GRAZING_VIEW, FLAG_OVER_TOLERANCE, FLAG_OUT_OF_DOMAIN,
+             FLAG_UNRELIABLE_NORMAL, FLAG_INVALID_POINT)
+FLAG_NAMES = ("outlier", "grazing_incidence", "grazing_view", "over_tolerance", "out_of_domain",
+              "unreliable_normal", "invalid_point")
+
+VERDICT_OK, VERDICT_WARN, VERDICT_RESCAN, VERDICT_ERROR = 0, 1, 2, 3
+VERDICT_NAMES = ("OK", "WARN", "RESCAN", "ERROR")
+
+
+@dataclass(frozen=True)
+class VerdictThresholds:
+    """Thresholds of the verdict rules (fractions of the valid points)."""
+
+    warn_flagged_fraction: float = 0.25
+    rescan_usable_fraction: float = 0.5
+    rescan_over_tolerance_fraction: float = 0.05
+    min_valid_points: int = 100
+
+
+def flag_counts(flags: np.ndarray) -> list[int]:
+    """Number of points with each flag bit set, in bit order."""
+    f = np.asarray(flags, dtype=np.uint16)
+    return [int(np.count_nonzero(f & b)) for b in FLAG_BITS]
+
+
+def angle_flags(normals: np.ndarray, L: np.ndarray, V: np.ndarray, grazing_incidence_deg: float,
+                grazing_view_deg: float) -> np.ndarray:
+    """GRAZING_INCIDENCE / GRAZING_VIEW bits for (M,) points from unit normals and unit L, V (M, 3)."""
+    cos_i = np.einsum("ij,ij->i", normals, L)
+    cos_v = np.einsum("ij,ij->i", normals, V)
+    out = np.zeros(len(normals), dtype=np.uint16)
+    out[cos_i < np.cos(np.radians(grazing_incidence_deg))] |= FLAG_GRAZING_INCIDENCE
+    out[cos_v < np.cos(np.radians(grazing_view_deg))] |= FLAG_GRAZING_VIEW
+    return out
+
+
+def domain_flags(X: np.ndarray, lo: np.ndarray, hi: np.ndarray, margin: float) -> np.ndarray:
+    """OUT_OF_DOMAIN bit for rows of ``X`` (M, F) outside [lo − m·(hi−lo), hi + m·(hi−lo)] in any feature."""
+    lo = np.asarray(lo, dtype=np.float64)
+    hi = np.asarray(hi, dtype=np.float64)
+    w = (hi - lo) * float(margin)
+    lo_m = (lo - w).astype(X.dtype)
+    hi_m = (hi + w).astype(X.dtype)
+    out_mask = ((X < lo_m) | (X > hi_m)).any(axis=1)
+    return np.where(out_mask, np.uint16(FLAG_OUT_OF_DOMAIN), np.uint16(0)).astype(np.uint16)
+
+
+def verdict(n_valid: int, n_usable: int, n_flagged: int, n_over_tolerance: int, th: VerdictThresholds,
+            settings_defaulted: bool = False, decimated: bool = False) -> tuple[int, str]:
+    """Verdict code and a short reason from the point counts (see the module docstring)."""
+    if n_valid < th.min_valid_points:
+        return VERDICT_RESCAN, f"only {n_valid} valid points (< {th.min_valid_points})"
+    usable = n_usable / n_valid
+    over = n_over_tolerance / n_valid
+    if usable < th.rescan_usable_fraction:
+        return VERDICT_RESCAN, f"usable fraction {usable:.3f} < {th.rescan_usable_fraction:g}"
+    if over > th.rescan_over_tolerance_fraction:
+        return VERDICT_RESCAN, f"over-tolerance fraction {over:.3f} > {th.rescan_over_tolerance_fraction:g}"
+    reasons = []
+    if n_flagged / n_valid > th.warn_flagged_fraction:
+        reasons.append(f"flagged fraction {n_flagged / n_valid:.3f} > {th.warn_flagged_fraction:g}")
+    if settings_defaulted:
+        reasons.append("settings defaulted")
+    if decimated:
+        reasons.append("cloud decimated")
+    if reasons:
+        return VERDICT_WARN, "; ".join(reasons)
+    return VERDICT_OK, "ok"

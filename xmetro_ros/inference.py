@@ -1,0 +1,213 @@
+"""Run a model set (ONNX files + ``card.json``) with ONNX Runtime: per-point errors in mm for the x, y, z axes.
+
+A model set directory holds ``card.json`` and one or more ONNX files; each file covers one or more axes:
+* ``kind: "points"`` (DT, SVR, MLP, CatBoost, one axis each): input ``X`` (N, F) float32 → ``y`` (N, 1) mm.
+* ``kind: "sets"`` (PointNet): input ``X`` (B, n, F) → ``y`` (B, n, A) mm. The points of one call are treated as
+  one cloud, partitioned into sets of ``card["set_size"]`` by a permutation seeded with
+  ``card["partition_seed"]`` (see :func:`xmetro_ros.learn.pointnet.partition_sets` and ``card["global_feature"]``).
+Features are the card's ``feature_names`` in order, in the units of ``feature_units`` (the study's: mm, deg, ms,
+per mm). Predictions are the systematic error nominal − measured, mm, in the scan frame's axes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .resources import default_model_dir
+
+__all__ = ["ModelSet", "ModelLoadError", "CARD_FORMAT", "AXES"]
+
+CARD_FORMAT = "xmetro-model-set/1"
+AXES = ("x", "y", "z")
+_SET_CHUNK = 1024  # sets per ONNX Runtime call: bounds the (sets × n × width) activations in memory
+
+
+class ModelLoadError(RuntimeError):
+    """A model set that cannot be used: missing directory or file, corrupt ONNX, or a card that does not match."""
+
+
+@dataclass
+class _Member:
+    family: str
+    kind: str  # "points" | "sets"
+    axes: tuple[int, ...]
+    session: Any
+    path: Path
+
+
+def _partition(n_points: int, set_size: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    from .learn.pointnet import partition_sets
+
+    return partition_sets(n_points, set_size, seed)
+
+
+class ModelSet:
+    """A loaded model set. ``predict`` is thread-safe (ONNX Runtime sessions are)."""
+
+    def __init__(self, model_dir: Path, card: dict, members: list[_Member]) -> None:
+        self.model_dir = model_dir
+        self.card = card
+        self.id: str = str(card["id"])
+        self.feature_names: list[str] = list(card["feature_names"])
+        self.feature_units: list[str] = list(card.get("feature_units") or [""] * len(self.feature_names))
+        self.axes = AXES
+        self.members = members
+        self.set_size = int(card.get("set_size", 50))
+        self.partition_seed = int(card.get("partition_seed", 0))
+        dom = card.get("domain") or {}
+        if dom:
+            lo, hi = np.asarray(dom["lo"], np.float64), np.asarray(dom["hi"], np.float64)
+        else:
+            lo = np.full(len(self.feature_names), -np.inf)
+            hi = np.full(len(self.feature_names), np.inf)
+        self.domain: tuple[np.ndarray, np.ndarray] = (lo, hi)
+        self._lock = threading.Lock()
+
+    # ------------------------------------------------------------------ loading
+    @classmethod
+    def load(cls, model_dir: str | Path | None = None, *, threads: int = 1) -> ModelSet:
+        """Load ``model_dir`` (None → the packaged default model). Raises ModelLoadError with the reason."""
+        d = Path(model_dir) if model_dir is not None else default_model_dir()
+        if not d.is_dir():
+            raise ModelLoadError(f"model directory {d} does not exist")
+        card_path = d / "card.json"
+        try:
+            card = json.loads(card_path.read_text())
+        except FileNotFoundError as e:
+            raise ModelLoadError(f"model directory {d} has no card.json") from e
+        except (OSError, json.JSONDecodeError) as e:
+            raise ModelLoadError(f"{card_path} cannot be read as JSON: {e}") from e
+        cls._check_card(card, card_path)
+        import onnxruntime as ort
+
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = max(1, int(threads))
+        opts.inter_op_num_threads = 1
+        members, covered = [], []
+        for m in card["models"]:
+            p = d / m["file"]
+            if not p.is_file():
+                raise ModelLoadError(f"model file {p} listed in the card is missing")
+            if m.get("sha256") and hashlib.sha256(p.read_bytes()).hexdigest() != m["sha256"]:
+                raise ModelLoadError(f"model file {p} does not match the card's sha256 (modified or corrupt)")
+            try:
+                sess = ort.InferenceSession(str(p), sess_options=opts, providers=["CPUExecutionProvider"])
+            except Exception as e:  # noqa: BLE001 - ORT raises several types for bad files
+                raise ModelLoadError(f"ONNX Runtime cannot load {p}: {e}") from e
+            shape = sess.get_inputs()[0].shape
+            if isinstance(shape[-1], int) and shape[-1] != len(card["feature_names"]):
+                raise ModelLoadError(
+                    f"{p.name} takes {shape[-1]} features but the card lists {len(card['feature_names'])}"
+                )
+            axes = tuple(AXES.index(a) for a in m["axes"])
+            covered.extend(axes)
+            members.append(_Member(m["family"], m["kind"], axes, sess, p))
+        if sorted(covered) != [0, 1, 2]:
+            raise ModelLoadError(f"{card_path}: the models must cover each of the axes x, y, z exactly once")
+        return cls(d, card, members)
+
+    @staticmethod
+    def _check_card(card: Any, where: Path) -> None:
+        if not isinstance(card, dict):
+            raise ModelLoadError(f"{where}: card must be a JSON object")
+        for key in ("id", "feature_names", "models"):
+            if key not in card:
+                raise ModelLoadError(f"{where}: card has no {key!r}")
+        if card.get("format", CARD_FORMAT) != CARD_FORMAT:
+            raise ModelLoadError(f"{where}: unsupported card format {card.get('format')!r} (expected {CARD_FORMAT})")
+        names = card["feature_names"]
+        if not names or not all(isinstance(n, str) for n in names) or len(set(names)) != len(names):
+            raise ModelLoadError(f"{where}: feature_names must be a non-empty list of distinct strings")
+        for m in card["models"]:
+            if m.get("kind") not in ("points", "sets") or not m.get("file") or not m.get("axes"):
+                raise ModelLoadError(f"{where}: model entry {m!r} needs file, kind (points|sets) and axes")
+            if any(a not in AXES for a in m["axes"]):
+                raise ModelLoadError(f"{where}: model entry {m.get('file')} has unknown axes {m['axes']}")
+        dom = card.get("domain")
+        if dom and (len(dom.get("lo", [])) != len(names) or len(dom.get("hi", [])) != len(names)):
+            raise ModelLoadError(f"{where}: domain lo/hi must have one value per feature")
+
+    # ------------------------------------------------------------------ features
+    def required_fields(self) -> set[str]:
+        """Per-point cloud fields the features need (e.g. ``intensity`` for ``field_intensity``)."""
+        try:
+            from .features import required_fields
+
+            return set(required_fields(self.feature_names))
+        except ImportError:
+            return {n[len("field_"):] for n in self.feature_names if n.startswith("field_")}
+
+    def check_features(self, registry: Any) -> None:
+        """Raise ModelLoadError naming the card's features that ``registry`` cannot compute."""
+        missing = []
+        for name in self.feature_names:
+            if name.startswith("field_"):
+                continue  # resolved dynamically from the cloud's fields
+            try:
+                registry.get(name)
+            except (KeyError, ValueError):
+                missing.append(name)
+        if missing:
+            raise ModelLoadError(f"model set {self.id!r} needs features the registry cannot compute: {missing}")
+
+    def out_of_domain(self, X: np.ndarray) -> np.ndarray:
+        """(M,) bool: some feature outside the training range (with the card's margin)."""
+        lo, hi = self.domain
+        X = np.asarray(X)
+        return np.any((X < lo) | (X > hi), axis=1)
+
+    # ------------------------------------------------------------------ prediction
+    def _check_X(self, X: np.ndarray) -> np.ndarray:
+        X = np.asarray(X, dtype=np.float32)
+        if X.ndim != 2 or X.shape[1] != len(self.feature_names):
+            raise ValueError(
+                f"model set {self.id!r} expects features of shape (M, {len(self.feature_names)}) "
+                f"({', '.join(self.feature_names)}), got {X.shape}"
+            )
+        return X
+
+    def predict(self, X: np.ndarray) -> np.ndarray:
+        """Errors (M, 3) float64 mm for the feature rows X (M, F) of ONE cloud/scan.
+
+        Rows with a non-finite feature get NaN (they are also kept out of every PointNet set).
+        """
+        X = self._check_X(X)
+        out = np.full((len(X), 3), np.nan)
+        ok = np.all(np.isfinite(X), axis=1)
+        if ok.any():
+            out[ok] = self.predict_batch(X[ok][None])[0]
+        return out
+
+    def predict_batch(self, Xq: np.ndarray) -> np.ndarray:
+        """(Q, P, F) → (Q, P, 3): Q versions of the same P-point cloud, each predicted as ``predict`` would
+        (same set partition for every version). Used by the SHAP explainer. Rows must be finite."""
+        Xq = np.asarray(Xq, dtype=np.float32)
+        q, p, f = Xq.shape
+        out = np.empty((q, p, 3))
+        if p == 0:
+            return out
+        for m in self.members:
+            if m.kind == "points":
+                y = m.session.run(None, {"X": Xq.reshape(q * p, f)})[0]
+                out[:, :, m.axes[0]] = y.reshape(q, p)
+            else:
+                idx, real = _partition(p, self.set_size, self.partition_seed)
+                sets = Xq[:, idx].reshape(-1, self.set_size, f)  # (Q*K, n, F)
+                ys = np.concatenate(
+                    [m.session.run(None, {"X": sets[i : i + _SET_CHUNK]})[0] for i in range(0, len(sets), _SET_CHUNK)]
+                ).reshape(q, len(idx), self.set_size, -1)
+                res = np.empty((q, p, ys.shape[-1]))
+                res[:, idx[real]] = ys[:, real]
+                out[:, :, list(m.axes)] = res
+        return out
+
+    def __repr__(self) -> str:
+        fams = ", ".join(f"{m.family}[{''.join(AXES[a] for a in m.axes)}]" for m in self.members)
+        return f"ModelSet(id={self.id!r}, features={len(self.feature_names)}, models={fams})"

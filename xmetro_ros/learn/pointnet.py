@@ -1,0 +1,209 @@
+"""The study's modified PointNet for per-point regression (PyTorch), and how point sets are formed.
+
+Architecture (study §3.5, Fig. 2; no T-Net/STN): shared MLP block 1 on every point → shared MLP block 2 →
+max-pool over the set → global feature, repeated for every point and concatenated with block 1's output → final
+MLP (the "head") → linear output, one column per target axis. Loss: MAE; Adam with an adaptive learning rate
+(ReduceLROnPlateau). The study layout is block1 (64, 64), block2 (64, 128, 1024), head of a 1088-wide input.
+
+Input normalisation (feature mean/std) and the target scale are buffers inside the module, so the exported ONNX
+graph maps raw features (study units) to errors in mm.
+
+Point sets: the network sees *sets* of points of one cloud. In training, each epoch draws random sets of
+``set_size`` points (without replacement) from each cloud's training points; in the test draws each cloud's points
+form sets of the same size. At inference a whole scan is split deterministically into sets of ``set_size`` points
+by a seeded permutation (:func:`partition_sets`); a last, shorter set is padded by repeating its own points, which
+leaves the max-pooled global feature unchanged, and only the real entries are kept.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import nn
+
+__all__ = ["PointNetReg", "PointNetConfig", "PointNetRegressor", "partition_sets", "sets_by_group", "STUDY_LAYOUT"]
+
+
+def _mlp(sizes: Sequence[int], final_relu: bool = True) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for i in range(len(sizes) - 1):
+        layers.append(nn.Linear(sizes[i], sizes[i + 1]))
+        if final_relu or i < len(sizes) - 2:
+            layers.append(nn.ReLU())
+    return nn.Sequential(*layers)
+
+
+class PointNetReg(nn.Module):
+    """Set-to-points regressor. forward: (B, n, F) raw features → (B, n, n_out) errors in mm."""
+
+    def __init__(
+        self,
+        n_features: int,
+        block1: Sequence[int] = (64, 64),
+        block2: Sequence[int] = (64, 128, 1024),
+        head: Sequence[int] = (512, 256, 128),
+        n_out: int = 1,
+    ) -> None:
+        super().__init__()
+        self.block1 = _mlp([n_features, *block1])
+        self.block2 = _mlp([block1[-1], *block2])
+        self.head = _mlp([block1[-1] + block2[-1], *head, n_out], final_relu=False)
+        self.register_buffer("x_mean", torch.zeros(n_features))
+        self.register_buffer("x_std", torch.ones(n_features))
+        self.register_buffer("y_scale", torch.ones(n_out))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        z = (x - self.x_mean) / self.x_std
+        f1 = self.block1(z)
+        g = self.block2(f1).amax(dim=1, keepdim=True)  # global feature of the set
+        h = torch.cat([f1, g.expand(-1, f1.shape[1], -1)], dim=-1)
+        return self.head(h) * self.y_scale
+
+
+STUDY_LAYOUT = {"block1": (64, 64), "block2": (64, 128, 1024), "head": (512, 256, 128)}
+
+
+def partition_sets(n_points: int, set_size: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Deterministic partition of ``n_points`` points into sets of ``set_size``.
+
+    Returns (idx (K, set_size) int64 point indices, real (K, set_size) bool): each point appears exactly once as a
+    real entry; the last set is padded by cycling through its own points (max-pool invariant).
+    """
+    if n_points <= 0:
+        raise ValueError("cannot partition an empty set of points")
+    if set_size <= 0:
+        raise ValueError(f"set_size must be positive, got {set_size}")
+    perm = np.random.default_rng(seed).permutation(n_points)
+    k = -(-n_points // set_size)
+    idx = np.empty(k * set_size, dtype=np.int64)
+    idx[:n_points] = perm
+    real = np.zeros(k * set_size, dtype=bool)
+    real[:n_points] = True
+    rem = n_points - (k - 1) * set_size
+    if rem < set_size:
+        last = perm[(k - 1) * set_size :]
+        idx[n_points:] = last[np.arange(set_size - rem) % rem]
+    return idx.reshape(k, set_size), real.reshape(k, set_size)
+
+
+def sets_by_group(groups: np.ndarray, set_size: int, rng: np.random.Generator | int) -> tuple[np.ndarray, np.ndarray]:
+    """Random sets of ``set_size`` points drawn without replacement within each group (cloud).
+
+    Returns (idx (K, set_size) indices into ``groups``, real (K, set_size) bool). Groups are never mixed.
+    """
+    rng = np.random.default_rng(rng)
+    groups = np.asarray(groups)
+    order = np.argsort(groups, kind="stable")
+    bounds = np.flatnonzero(np.diff(groups[order])) + 1
+    all_idx, all_real = [], []
+    for members in np.split(order, bounds):
+        sub_idx, sub_real = partition_sets(len(members), set_size, int(rng.integers(2**31)))
+        all_idx.append(members[sub_idx])
+        all_real.append(sub_real)
+    return np.concatenate(all_idx), np.concatenate(all_real)
+
+
+@dataclass
+class PointNetConfig:
+    """Hyper-parameters of one PointNet fit."""
+
+    block1: tuple[int, ...] = (64, 64)
+    block2: tuple[int, ...] = (64, 128, 1024)
+    head: tuple[int, ...] = (512, 256, 128)
+    set_size: int = 50
+    epochs: int = 150
+    batch_sets: int = 16
+    lr: float = 2e-3
+    weight_decay: float = 0.0
+    patience: int = 8  # epochs without improvement before the learning rate is halved (adaptive rate)
+    threads: int = 2
+    extra: dict = field(default_factory=dict)
+
+
+class PointNetRegressor:
+    """Fit / predict wrapper around :class:`PointNetReg` with an sklearn-like API (groups = cloud ids)."""
+
+    family = "pointnet"
+
+    def __init__(self, config: PointNetConfig | None = None, seed: int = 0) -> None:
+        self.config = config or PointNetConfig()
+        self.seed = seed
+        self.module_: PointNetReg | None = None
+        self.history_: list[float] = []
+
+    def get_params(self) -> dict:
+        c = self.config
+        return {"block1": list(c.block1), "block2": list(c.block2), "head": list(c.head), "set_size": c.set_size,
+                "epochs": c.epochs, "lr": c.lr}
+
+    def fit(self, X: np.ndarray, y: np.ndarray, groups: np.ndarray) -> PointNetRegressor:
+        """X (M, F) raw features, y (M,) or (M, A) mm, groups (M,) cloud ids (sets never mix clouds)."""
+        X = np.asarray(X, np.float32)
+        y2 = np.asarray(y, np.float32).reshape(len(X), -1)
+        if len(X) == 0:
+            raise ValueError("PointNet: no training points")
+        c = self.config
+        torch.manual_seed(self.seed)
+        rng = np.random.default_rng(self.seed)
+        prev_threads = torch.get_num_threads()
+        torch.set_num_threads(max(1, c.threads))
+        try:
+            net = PointNetReg(X.shape[1], c.block1, c.block2, c.head, n_out=y2.shape[1])
+            std = X.std(0)
+            net.x_mean.copy_(torch.from_numpy(X.mean(0)))
+            net.x_std.copy_(torch.from_numpy(np.where(std > 1e-12, std, 1.0).astype(np.float32)))
+            ys = np.abs(y2 - np.median(y2, 0)).mean(0)
+            net.y_scale.copy_(torch.from_numpy(np.where(ys > 1e-12, ys, 1.0).astype(np.float32)))
+            opt = torch.optim.Adam(net.parameters(), lr=c.lr, weight_decay=c.weight_decay)
+            sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.5, patience=c.patience)
+            Xt, yt = torch.from_numpy(X), torch.from_numpy(y2)
+            best, best_state = np.inf, None
+            for _epoch in range(c.epochs):
+                idx, real = sets_by_group(groups, c.set_size, rng)
+                order = rng.permutation(len(idx))
+                total, count = 0.0, 0.0
+                net.train()
+                for start in range(0, len(order), c.batch_sets):
+                    b = order[start : start + c.batch_sets]
+                    bi, br = torch.from_numpy(idx[b]), torch.from_numpy(real[b]).float().unsqueeze(-1)
+                    pred = net(Xt[bi])
+                    err = (pred - yt[bi]).abs() / net.y_scale * br
+                    loss = err.sum() / (br.sum() * y2.shape[1])
+                    opt.zero_grad()
+                    loss.backward()
+                    opt.step()
+                    total += loss.item() * float(br.sum())
+                    count += float(br.sum())
+                epoch_loss = total / max(count, 1.0)
+                self.history_.append(epoch_loss)
+                sched.step(epoch_loss)
+                if epoch_loss < best:
+                    best, best_state = epoch_loss, copy.deepcopy(net.state_dict())
+            if best_state is not None:
+                net.load_state_dict(best_state)
+            net.eval()
+            self.module_ = net
+        finally:
+            torch.set_num_threads(prev_threads)
+        return self
+
+    def predict_sets(self, Xs: np.ndarray) -> np.ndarray:
+        """(K, n, F) sets → (K, n, A) mm, float32 (the framework reference for ONNX checks)."""
+        if self.module_ is None:
+            raise RuntimeError("PointNetRegressor is not fitted")
+        with torch.no_grad():
+            return self.module_(torch.from_numpy(np.asarray(Xs, np.float32))).numpy()
+
+    def predict(self, X: np.ndarray, groups: np.ndarray | None = None, seed: int = 0) -> np.ndarray:
+        """Per-point predictions (M, A) mm; sets formed within each group by a seeded partition (see module doc)."""
+        X = np.asarray(X, np.float32)
+        groups = np.zeros(len(X), np.int64) if groups is None else np.asarray(groups)
+        idx, real = sets_by_group(groups, self.config.set_size, seed)
+        out = self.predict_sets(X[idx])
+        pred = np.empty((len(X), out.shape[-1]), np.float32)
+        pred[idx[real]] = out[real]
+        return pred

@@ -1,0 +1,163 @@
+"""Library of candidate explanatory variables for the residual (documented in docs/closed-loop.md).
+
+Two sources:
+
+- every per-point field of the input, named ``field_<name>`` (the name the feature registry resolves, so that a
+  selected field becomes a model feature the node reads from the PointCloud2). Fields whose name says they are an
+  identity (``pass``, ``profile``, ``pose``, ``*_id``) are *identity* candidates, held out inside their group.
+- derived quantities (only those the input can give): ``range`` (mm, point → laser source / scanner),
+  ``incidence_angle`` / ``viewing_angle`` (deg, between the nominal normal and the direction to the source /
+  camera), ``line_position`` (mm along the laser line), ``scan_position`` (mm along the scan direction),
+  ``x``/``y``/``z`` (mm, artifact frame), ``curvature`` (local surface variation λ_min / Σλ of the 16 nearest
+  neighbours), ``density`` (points per mm² from the 8th-neighbour distance), ``profile_identity`` (identity of
+  each profile: the group itself for profile data, (cloud, line) for organized scans) and ``cloud_identity``.
+A derived candidate that duplicates a field (``line_position`` ↔ ``field_u``) is dropped in favour of the field.
+Candidates equivalent to a feature the model already has are flagged ``in_model`` (reported as controls, never
+selected).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .data import LoopData, LoopInputError
+
+__all__ = ["CandidateInfo", "build_candidates", "IDENTITY_FIELD_NAMES", "DERIVED"]
+
+IDENTITY_FIELD_NAMES = {"pass", "pass_id", "profile", "profile_id", "pose", "pose_id", "cloud", "cloud_id", "id"}
+
+# derived name → (unit, description, equivalent study feature or None)
+DERIVED: dict[str, tuple[str, str, str | None]] = {
+    "range": ("mm", "distance from the point to the laser source (scanner origin for TLS)", None),
+    "incidence_angle": ("deg", "angle between the nominal normal and the direction to the laser source", "Inc"),
+    "viewing_angle": ("deg", "angle between the nominal normal and the direction to the camera", "ViewAng"),
+    "line_position": ("mm", "position along the laser line (head X / sensor x)", None),
+    "scan_position": ("mm", "position along the scan direction (head Y)", None),
+    "x": ("mm", "x coordinate in the artifact frame", None),
+    "y": ("mm", "y coordinate in the artifact frame", None),
+    "z": ("mm", "z coordinate in the artifact frame", None),
+    "curvature": ("1", "local surface variation λ_min/Σλ of the 16 nearest neighbours", None),
+    "density": ("1/mm²", "local point density from the 8th-neighbour distance", None),
+    "profile_identity": ("id", "identity of each profile (per-profile / per-pose offset)", None),
+    "cloud_identity": ("id", "identity of each cloud (per-cloud offset)", None),
+}
+FIELD_DUPLICATES = {"line_position": "u", "scan_time": "t"}
+
+
+@dataclass(frozen=True)
+class CandidateInfo:
+    name: str
+    kind: str  # "continuous" | "identity"
+    unit: str
+    description: str
+    source: str  # "field" | "derived"
+    in_model: bool
+
+
+def _angle(n: np.ndarray, d: np.ndarray) -> np.ndarray:
+    return np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", n, d), -1.0, 1.0)))
+
+
+def _local_shape(points: np.ndarray, group: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Curvature (surface variation) and density per point, neighbours taken inside each group."""
+    curv = np.zeros(len(points))
+    dens = np.zeros(len(points))
+    for g in np.unique(group):
+        idx = np.flatnonzero(group == g)
+        p = points[idx]
+        k = min(16, len(p))
+        if k < 4:
+            continue
+        tree = cKDTree(p)
+        dist, nn = tree.query(p, k=k)
+        nb = p[nn] - p[nn].mean(axis=1, keepdims=True)
+        cov = np.einsum("nki,nkj->nij", nb, nb) / k
+        ev = np.linalg.eigvalsh(cov)
+        curv[idx] = ev[:, 0] / np.maximum(ev.sum(axis=1), 1e-18)
+        r = dist[:, min(8, k - 1)]
+        dens[idx] = min(8, k - 1) / (np.pi * np.maximum(r, 1e-9) ** 2)
+    return curv, dens
+
+
+def build_candidates(
+    data: LoopData, include: list[str] | None = None, exclude: tuple[str, ...] = ()
+) -> tuple[dict[str, np.ndarray], dict[str, CandidateInfo]]:
+    """Candidate values (name → (N,) float) and their descriptions for ``data``.
+
+    Args:
+        include: restrict to these names (``field_<name>`` or a derived name); a name the input cannot give raises
+            LoopInputError naming it (e.g. ``field_intensity`` on a file without intensity).
+        exclude: names to leave out (e.g. variables already added in an earlier iteration).
+    """
+    vals: dict[str, np.ndarray] = {}
+    info: dict[str, CandidateInfo] = {}
+    feats = set(data.feature_names)
+
+    def add(name: str, v: np.ndarray, kind: str, unit: str, desc: str, source: str, equiv: str | None) -> None:
+        vals[name] = np.asarray(v, dtype=float)
+        info[name] = CandidateInfo(name, kind, unit, desc, source, name in feats or (equiv in feats if equiv else False))
+
+    want = set(include) if include is not None else None
+
+    def wanted(name: str) -> bool:
+        return (want is None or name in want) and name not in exclude
+
+    for fname, arr in data.fields.items():
+        if not wanted(f"field_{fname}"):
+            continue
+        kind = "identity" if (fname.lower() in IDENTITY_FIELD_NAMES or fname.lower().endswith("_id")) else "continuous"
+        v = np.asarray(arr, dtype=float)
+        if kind == "identity":
+            v = _combine(data.group, v)  # an identity lives inside its cloud
+        add(f"field_{fname}", v, kind, "", f"input field {fname!r}", "field", None)
+
+    g = data.geometry
+    if "source_distance" in g and wanted("range"):
+        add("range", g["source_distance"], "continuous", *DERIVED["range"][:2], "derived", None)
+    if "L" in g and wanted("incidence_angle"):
+        add("incidence_angle", _angle(data.normals, g["L"]), "continuous", *DERIVED["incidence_angle"][:2],
+            "derived", "Inc")
+    if "V" in g and wanted("viewing_angle"):
+        add("viewing_angle", _angle(data.normals, g["V"]), "continuous", *DERIVED["viewing_angle"][:2],
+            "derived", "ViewAng")
+    if "u" in g and "u" not in data.fields and wanted("line_position"):
+        add("line_position", g["u"], "continuous", *DERIVED["line_position"][:2], "derived", None)
+    if "s" in g and wanted("scan_position"):
+        add("scan_position", g["s"], "continuous", *DERIVED["scan_position"][:2], "derived", None)
+    for i, ax in enumerate("xyz"):
+        if wanted(ax):
+            add(ax, data.points[:, i], "continuous", *DERIVED[ax][:2], "derived", None)
+    if wanted("curvature") or wanted("density"):
+        curv, dens = _local_shape(data.points, data.group)
+        if wanted("curvature"):
+            add("curvature", curv, "continuous", *DERIVED["curvature"][:2], "derived", None)
+        if wanted("density"):
+            add("density", dens, "continuous", *DERIVED["density"][:2], "derived", None)
+    if wanted("profile_identity"):
+        if data.hold_by == "profile":
+            add("profile_identity", data.group, "identity", *DERIVED["profile_identity"][:2], "derived", None)
+        elif "line" in data.fields:
+            add("profile_identity", _combine(data.group, data.fields["line"]), "identity",
+                *DERIVED["profile_identity"][:2], "derived", None)
+    if wanted("cloud_identity") and data.hold_by == "cloud" and len(data.groups) > 1:
+        add("cloud_identity", data.group, "identity", *DERIVED["cloud_identity"][:2], "derived", None)
+
+    if include is not None:
+        missing = [n for n in include if n not in vals]
+        if missing:
+            avail = sorted(vals)
+            raise LoopInputError(f"candidate(s) {missing} are not available in this input (available: {avail})")
+    for name in exclude:
+        vals.pop(name, None)
+        info.pop(name, None)
+    return vals, info
+
+
+def _combine(group: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """One code per (group, value) pair."""
+    keys = np.stack([np.asarray(group, dtype=float), np.asarray(v, dtype=float)], axis=1)
+    _, codes = np.unique(keys, axis=0, return_inverse=True)
+    return codes.reshape(-1).astype(float)

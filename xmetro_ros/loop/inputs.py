@@ -1,0 +1,192 @@
+"""Inputs of the loop → LoopData: our scans (MCAP bags or in-memory ``Scan``s) and measured files (NIST TLS spheres,
+AT C5 profiler sphere) through ``xmetro_ros.measured``. Lengths mm, artifact frame.
+
+Ground truth: ``targets.errors_with_fit`` = nominal − measured with the nominal radius; ``center=fit`` fits the
+centre per cloud (scans, NIST spheres: one placement each) or once over all profiles (AT C5: one sphere seen by 15
+robot poses). A radius far from the data raises ``targets.FitError``.
+Features of the current model: the study's 14 (``features.STUDY_FEATURES``) for scans; for measured sets, whose
+scan settings are unknown, the study's geometric features only (``MEASURED_FEATURES``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..artifacts import Artifact, parse_artifact
+from ..geometry import unit
+from ..scan import Scan
+from .data import LoopData, LoopInputError
+
+__all__ = ["from_scans", "from_nist", "from_atc5", "load_inputs", "MEASURED_FEATURES", "detect_kind"]
+
+# Study features that need no scan settings (measured sets do not declare them).
+MEASURED_FEATURES = ["N_x", "N_y", "N_z", "Inc", "ViewAng", "R_y", "ang"]
+
+
+def _errors(points: np.ndarray, artifact: Artifact, fit_center: bool) -> tuple[np.ndarray, Artifact]:
+    from ..targets import errors_with_fit
+
+    return errors_with_fit(points, artifact, fit_center)
+
+
+def _nominal_normals(points: np.ndarray, art: Artifact) -> np.ndarray:
+    return np.asarray(art.normals(art.project(points)), dtype=float)
+
+
+def from_scans(
+    scans: list[Scan], artifact: Artifact | None = None, fit_center: bool = False,
+    feature_names: list[str] | None = None, preprocess_cfg=None, names: list[str] | None = None,
+) -> LoopData:
+    """Table of organized / unorganized scans (each one group). ``artifact`` None → each scan's own artifact."""
+    from ..features import STUDY_FEATURES, FeatureContext, compute_features
+    from ..preprocess import prepare_scan
+
+    if not scans:
+        raise LoopInputError("no scans in the input")
+    feats = list(feature_names or STUDY_FEATURES)
+    parts = []
+    for i, scan in enumerate(scans):
+        art = artifact or scan.artifact
+        if art is None:
+            raise LoopInputError(f"scan {i} has no nominal artifact: give one with --artifact")
+        prep = prepare_scan(scan, preprocess_cfg)
+        E, art_used = _errors(prep.points, art, fit_center)
+        ctx = FeatureContext.from_prepared(prep)
+        X = compute_features(feats, ctx)
+        g = prep.geometry
+        n = len(prep.points)
+        parts.append(LoopData(
+            points=prep.points, normals=_nominal_normals(prep.points, art_used), errors=E, X=X, feature_names=feats,
+            fields={k: np.asarray(v, dtype=float) for k, v in prep.fields.items()},
+            group=np.zeros(n, dtype=np.int64), order=np.asarray(prep.index, dtype=np.int64),
+            geometry={"source_distance": np.asarray(g.source_distance, float), "L": np.asarray(g.L, float),
+                      "V": np.asarray(g.V, float), "u": np.asarray(g.u, float), "s": np.asarray(g.s, float)},
+            group_names=[names[i] if names else f"scan{i}"], source="scans", hold_by="cloud",
+            artifact={"nominal": art.to_dict(), "fit_center": fit_center},
+        ))
+    return LoopData.concat(parts)
+
+
+def _measured_features(points: np.ndarray, L: np.ndarray, V: np.ndarray, standoff: np.ndarray,
+                       fields: dict, feats: list[str]) -> np.ndarray:
+    """Study geometric features of measured points: normals estimated from the points (open3d), oriented toward
+    the sensor; no scan settings."""
+    from ..features import FeatureContext, compute_features
+    from ..preprocess import estimate_normals
+
+    normals, _q = estimate_normals(points, radius_mm=2.0, max_nn=30, toward=L)
+    ctx = FeatureContext(normals=normals, L=L.astype(np.float32), V=V.astype(np.float32),
+                         standoff=standoff.astype(np.float32),
+                         source_distance=np.linalg.norm(points - 0, axis=1).astype(np.float32), settings=None,
+                         fields=fields, points=points, u=np.zeros(len(points), np.float32),
+                         s=np.zeros(len(points), np.float32))
+    return compute_features(feats, ctx)
+
+
+def from_nist(path: Path, artifact: Artifact, fit_center: bool) -> LoopData:
+    """NIST TLS sphere scans (a directory of SPH*.xyz or single files): one group per cloud, scanner at origin."""
+    from .. import measured
+
+    path = Path(path)
+    clouds = measured.load_nist_set(path) if path.is_dir() else [measured.load_nist_sphere(path)]
+    parts = []
+    for i, c in enumerate(clouds):
+        p = np.asarray(c.points, dtype=float)
+        E, art_used = _errors(p, artifact, fit_center)
+        L = unit(-p)
+        dist = np.linalg.norm(p, axis=1)
+        X = _measured_features(p, L, L, dist, {}, MEASURED_FEATURES)
+        n = len(p)
+        parts.append(LoopData(
+            points=p, normals=_nominal_normals(p, art_used), errors=E, X=X, feature_names=list(MEASURED_FEATURES),
+            fields={}, group=np.zeros(n, dtype=np.int64), order=np.arange(n),
+            geometry={"source_distance": dist, "L": L, "V": L},
+            group_names=[getattr(c, "name", f"cloud{i}")], source="nist_tls", hold_by="cloud",
+            artifact={"nominal": artifact.to_dict(), "fit_center": fit_center},
+        ))
+    return LoopData.concat(parts)
+
+
+def from_atc5(path: Path, artifact: Artifact, fit_center: bool) -> LoopData:
+    """AT C5 profiler sphere: 15 profiles taken to the robot base (pose × hand-eye); one group per profile; the
+    sphere centre (``center=fit``) is fitted once over all profiles."""
+    from .. import measured
+
+    profiles = measured.load_atc5(Path(path))
+    pts, L, u, rng_, grp, order, names = [], [], [], [], [], [], []
+    for i, pr in enumerate(profiles):
+        pb = np.asarray(pr.to_base(), dtype=float)
+        T = np.asarray(pr.flange_pose, dtype=float) @ np.asarray(pr.hand_eye, dtype=float)
+        origin = T[:3, 3]
+        xz = np.asarray(pr.xz, dtype=float)
+        pts.append(pb)
+        L.append(unit(origin - pb))
+        u.append(xz[:, 0])
+        rng_.append(np.hypot(xz[:, 0], xz[:, 1]))
+        grp.append(np.full(len(pb), i, dtype=np.int64))
+        order.append(np.argsort(np.argsort(xz[:, 0])))
+        names.append(f"p{getattr(pr, 'profile_id', i + 1)}")
+    P = np.concatenate(pts)
+    E, art_used = _errors(P, artifact, fit_center)
+    Lc = np.concatenate(L)
+    dist = np.concatenate(rng_)
+    X = _measured_features(P, Lc, Lc, dist, {}, MEASURED_FEATURES)
+    return LoopData(
+        points=P, normals=_nominal_normals(P, art_used), errors=E, X=X, feature_names=list(MEASURED_FEATURES),
+        fields={}, group=np.concatenate(grp), order=np.concatenate(order),
+        geometry={"source_distance": dist, "L": Lc, "V": Lc, "u": np.concatenate(u)}, group_names=names,
+        source="atc5_profiler", hold_by="profile",
+        artifact={"nominal": artifact.to_dict(), "fit_center": fit_center,
+                  "fitted": art_used.to_dict() if hasattr(art_used, "to_dict") else None},
+    )
+
+
+def detect_kind(path: Path) -> str:
+    """"bag" (.mcap or rosbag2 dir), "nist" (.xyz file or dir of them), "atc5" (dir with RobPoses.rob)."""
+    path = Path(path)
+    if not path.exists():
+        raise LoopInputError(f"input {path} does not exist")
+    if path.is_file():
+        if path.suffix == ".mcap":
+            return "bag"
+        if path.suffix == ".xyz":
+            return "nist"
+    elif (path / "RobPoses.rob").exists():
+        return "atc5"
+    elif (path / "metadata.yaml").exists() or any(path.glob("*.mcap")):
+        return "bag"
+    elif any(path.glob("*.xyz")):
+        return "nist"
+    raise LoopInputError(f"cannot tell what {path} holds (expected an .mcap bag, NIST .xyz files or an AT C5 "
+                         "profile directory with RobPoses.rob)")
+
+
+def load_inputs(paths: list[str | Path], artifact_spec: str | None) -> LoopData:
+    """All inputs of one run (they must be of one kind). ``artifact_spec`` (parse_artifact syntax) is required for
+    measured files; for bags it overrides the scans' own artifact."""
+    if not paths:
+        raise LoopInputError("no input given")
+    art, fit = (parse_artifact(artifact_spec) if artifact_spec else (None, False))
+    kinds = {detect_kind(Path(p)) for p in paths}
+    if len(kinds) > 1:
+        raise LoopInputError(f"inputs of different kinds {sorted(kinds)}: run the loop once per kind")
+    kind = kinds.pop()
+    if kind != "bag" and art is None:
+        raise LoopInputError("measured inputs need --artifact (e.g. sphere:radius=50,center=fit)")
+    parts = []
+    for p in paths:
+        try:
+            if kind == "bag":
+                from ..scan_io import read_scans
+
+                scans = read_scans(p)
+                parts.append(from_scans(scans, art, fit, names=[f"{Path(p).stem}#{i}" for i in range(len(scans))]))
+            elif kind == "nist":
+                parts.append(from_nist(Path(p), art, fit))
+            else:
+                parts.append(from_atc5(Path(p), art, fit))
+        except (OSError, UnicodeDecodeError) as e:
+            raise LoopInputError(f"cannot read {p}: {e}") from e
+    return LoopData.concat(parts)

@@ -1,0 +1,266 @@
+"""Trace a residual to candidate variables: held-out explained variance of a small non-linear regressor + a
+permutation test with Holm multiple-testing control.
+
+Method (per candidate variable ``x``, residual ``R`` (N, 3) mm = actual − predicted error):
+
+- Regressor: a shrunken bin-mean (piecewise-constant) fit of ``R`` on ``x``: quantile bins of ``x`` (continuous
+  candidates) or one bin per identity value (identity candidates, e.g. a profile or pass id). Piecewise-constant
+  fits catch non-linear and non-monotonic effects; shrinkage (``n / (n + shrink)``) keeps sparse bins near zero.
+- Held-out score: K-fold cross-validation whose folds hold out whole groups (clouds or profiles) for continuous
+  candidates; an identity's effect cannot transfer to an unseen identity, so identity candidates are held out by
+  interleaved blocks of points inside each group (fit on some blocks of a profile, score on the others).
+  ``score`` = 1 − SSE / SST over the held-out points and the three axes (the fraction of the residual's variance
+  explained out of sample; ≤ 0 when the candidate explains nothing).
+- Significance: the same score with the residual rows permuted inside each training fold (``n_perm`` times; the
+  held-out residual stays untouched), p = (1 + #{null ≥ observed}) / (1 + n_perm); when no permutation reaches the
+  observed score, p is extrapolated from a normal fit to the null scores (capped at 1 / (1 + n_perm)), so that few
+  permutations suffice; Holm's step-down correction over all candidates controls the family-wise error rate.
+- A candidate is *significant* when its Holm-adjusted p ≤ ``alpha`` **and** its score ≥ ``min_effect`` (a
+  practical-size floor: a tiny but "significant" share of a huge cloud is not an effect worth a feature).
+
+Everything is vectorised over points and permutations (``np.bincount``), no per-point Python loops.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+from scipy.stats import norm
+
+__all__ = ["TraceConfig", "CandidateScore", "cv_folds", "trace_candidates", "holm", "bin_codes"]
+
+
+@dataclass(frozen=True)
+class TraceConfig:
+    """Parameters of the trace (see module docstring)."""
+
+    n_folds: int = 4
+    n_bins: int = 16
+    shrink: float = 20.0
+    n_perm: int = 199
+    alpha: float = 0.01
+    min_effect: float = 0.03
+    block_size: int = 24
+    max_points: int = 40000
+    seed: int = 0
+
+
+@dataclass
+class CandidateScore:
+    """Result for one candidate. ``score`` and ``score_axes`` are held-out explained-variance fractions."""
+
+    name: str
+    kind: str
+    score: float
+    score_axes: dict[str, float]
+    score_normal: float
+    p_value: float
+    p_holm: float = 1.0
+    significant: bool = False
+    in_model: bool = False
+    description: str = ""
+    unit: str = ""
+    null_mean: float = 0.0
+    null_p95: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        for k in ("score", "score_normal", "p_value", "p_holm", "null_mean", "null_p95"):
+            d[k] = float(d[k])
+        d["score_axes"] = {k: float(v) for k, v in self.score_axes.items()}
+        return d
+
+
+def holm(p: np.ndarray) -> np.ndarray:
+    """Holm step-down adjusted p-values (family-wise error control), same order as ``p``."""
+    p = np.asarray(p, dtype=float)
+    m = len(p)
+    if m == 0:
+        return p
+    order = np.argsort(p)
+    adj = np.minimum(1.0, np.maximum.accumulate(p[order] * (m - np.arange(m))))
+    out = np.empty(m)
+    out[order] = adj
+    return out
+
+
+def cv_folds(groups: np.ndarray, order: np.ndarray, n_folds: int, *, by: str, block_size: int, seed: int) -> np.ndarray:
+    """Fold index (N,) per point. ``by="group"``: whole groups per fold (needs ≥ 2 groups); ``by="block"``:
+    interleaved blocks of ``block_size`` consecutive points (acquisition ``order``) inside each group."""
+    groups = np.asarray(groups)
+    if by == "group":
+        ug = np.unique(groups)
+        if len(ug) < 2:
+            raise ValueError(f"holding out by group needs at least 2 groups (clouds or profiles), got {len(ug)}")
+        k = min(n_folds, len(ug))
+        rng = np.random.default_rng(seed)
+        perm = rng.permutation(len(ug))
+        fold_of = np.empty(len(ug), dtype=np.int64)
+        fold_of[perm] = np.arange(len(ug)) % k
+        return fold_of[np.searchsorted(ug, groups)]
+    if by == "block":
+        blk = np.asarray(order, dtype=np.int64) // max(1, block_size)
+        return (blk + np.searchsorted(np.unique(groups), groups)) % n_folds
+    raise ValueError(f"unknown fold scheme {by!r}")
+
+
+def bin_codes(x_train: np.ndarray, x_test: np.ndarray, kind: str, n_bins: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """Bin codes for training and test values: quantile bins of the training values (continuous) or one code per
+    value seen in training (identity; unseen values get a dedicated empty code → predicted 0)."""
+    if kind == "identity":
+        vals = np.unique(x_train)
+        ctr = np.searchsorted(vals, x_train)
+        pos = np.clip(np.searchsorted(vals, x_test), 0, len(vals) - 1)
+        cte = np.where(vals[pos] == x_test, pos, len(vals))
+        return ctr, cte, len(vals) + 1
+    edges = np.unique(np.quantile(x_train, np.linspace(0, 1, n_bins + 1)[1:-1]))
+    return np.searchsorted(edges, x_train, side="right"), np.searchsorted(edges, x_test, side="right"), len(edges) + 1
+
+
+def _fold_scores(
+    R: np.ndarray, codes_tr: np.ndarray, codes_te: np.ndarray, nb: int, tr: np.ndarray, te: np.ndarray,
+    shrink: float, perms: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """SSE (A,) and SST (A,) on the test fold for the observed fit, and SSE (P, A) under permutations."""
+    Rtr, Rte = R[tr], R[te]
+    mu = Rtr.mean(axis=0)
+    Rtr_c, Rte_c = Rtr - mu, Rte - mu
+    cnt = np.bincount(codes_tr, minlength=nb).astype(float)
+    denom = cnt + shrink
+    A = R.shape[1]
+    sse = np.empty(A)
+    sst = (Rte_c**2).sum(axis=0)
+    for a in range(A):
+        m = np.bincount(codes_tr, weights=Rtr_c[:, a], minlength=nb) / denom
+        sse[a] = ((Rte_c[:, a] - m[codes_te]) ** 2).sum()
+    if perms is None:
+        return sse, sst, np.empty((0, A))
+    P = perms.shape[0]
+    # Permuting residual rows against the codes == permuting the codes against the rows.
+    pc = codes_tr[perms] + (np.arange(P)[:, None] * nb)  # (P, ntr)
+    flat = pc.ravel()
+    sse_null = np.empty((P, A))
+    # Test counts per code: SSE = Σ r² − 2 Σ_b m_b S_b + Σ_b n_b m_b² with S_b, n_b the test sums/counts per code.
+    nte = np.bincount(codes_te, minlength=nb).astype(float)
+    for a in range(A):
+        m = np.bincount(flat, weights=np.tile(Rtr_c[:, a], P), minlength=P * nb).reshape(P, nb) / denom
+        ste = np.bincount(codes_te, weights=Rte_c[:, a], minlength=nb)
+        sse_null[:, a] = sst[a] - 2.0 * (m * ste).sum(axis=1) + (m * m * nte).sum(axis=1)
+    return sse, sst, sse_null
+
+
+def score_candidate(
+    R: np.ndarray, x: np.ndarray, kind: str, folds: np.ndarray, cfg: TraceConfig, rng: np.random.Generator | None,
+    normal_res: np.ndarray | None = None,
+) -> dict:
+    """Held-out explained variance of ``R`` (N, A) by ``x`` and its permutation null (when ``rng`` is given)."""
+    A = R.shape[1]
+    tot_sse, tot_sst = np.zeros(A), np.zeros(A)
+    tot_null = np.zeros((cfg.n_perm if rng is not None else 0, A))
+    n_sse = n_sst = 0.0
+    for f in np.unique(folds):
+        te = folds == f
+        tr = ~te
+        if tr.sum() < 2 * cfg.n_bins or te.sum() < 2:
+            continue
+        ctr, cte, nb = bin_codes(x[tr], x[te], kind, cfg.n_bins)
+        perms = None
+        if rng is not None:
+            perms = np.argsort(rng.random((cfg.n_perm, int(tr.sum()))), axis=1)
+        sse, sst, null = _fold_scores(R, ctr, cte, nb, tr, te, cfg.shrink, perms)
+        tot_sse += sse
+        tot_sst += sst
+        if rng is not None:
+            tot_null += null
+        if normal_res is not None:
+            s2, t2, _ = _fold_scores(normal_res[:, None], ctr, cte, nb, tr, te, cfg.shrink, None)
+            n_sse += float(s2[0])
+            n_sst += float(t2[0])
+    if tot_sst.sum() <= 0:
+        raise ValueError("the residual has no variance on the held-out folds (too few points or groups to trace)")
+    score = 1.0 - tot_sse.sum() / tot_sst.sum()
+    axes = {ax: float(1.0 - tot_sse[i] / tot_sst[i]) if tot_sst[i] > 0 else 0.0 for i, ax in enumerate("xyz"[:A])}
+    out = {"score": float(score), "score_axes": axes, "score_normal": float(1.0 - n_sse / n_sst) if n_sst > 0 else 0.0}
+    if rng is not None:
+        null = 1.0 - tot_null.sum(axis=1) / tot_sst.sum()
+        n_ge = int(np.sum(null >= score))
+        if n_ge > 0:
+            out["p_value"] = float((1 + n_ge) / (1 + len(null)))
+        else:
+            # Beyond the permutation resolution: extrapolate with a normal fit to the null (sum over many points).
+            sd = max(float(null.std(ddof=1)), 1e-12)
+            out["p_value"] = float(min(1.0 / (1 + len(null)), norm.sf((score - null.mean()) / sd)))
+        out["null_mean"] = float(null.mean())
+        out["null_p95"] = float(np.quantile(null, 0.95))
+    return out
+
+
+def trace_candidates(
+    residual: np.ndarray,
+    candidates: dict[str, np.ndarray],
+    kinds: dict[str, str],
+    groups: np.ndarray,
+    order: np.ndarray,
+    cfg: TraceConfig = TraceConfig(),
+    *,
+    normal_residual: np.ndarray | None = None,
+    identity_groups: dict[str, np.ndarray] | None = None,
+    meta: dict[str, dict] | None = None,
+) -> list[CandidateScore]:
+    """Rank candidates by held-out explained variance of ``residual`` (N, 3) mm; significance by permutation + Holm.
+
+    Args:
+        residual: actual − predicted error per axis, mm.
+        candidates: name → (N,) values (finite).
+        kinds: name → "continuous" | "identity".
+        groups: (N,) cloud / profile id: continuous candidates are held out by whole groups.
+        order: (N,) acquisition order of each point inside its group (blocks for identity candidates).
+        normal_residual: (N,) residual along the nominal normal (reported, not used for ranking).
+        meta: name → {"description", "unit", "in_model"} copied into the scores.
+    Returns:
+        scores sorted by decreasing score (significant first).
+    """
+    R = np.asarray(residual, dtype=float)
+    if R.ndim != 2 or R.shape[1] != 3:
+        raise ValueError(f"residual must be (N, 3), got {R.shape}")
+    n = len(R)
+    if n < 4 * cfg.n_bins:
+        raise ValueError(f"too few points to trace: {n} (need at least {4 * cfg.n_bins})")
+    rng_sub = np.random.default_rng(cfg.seed)
+    sel = np.sort(rng_sub.choice(n, cfg.max_points, replace=False)) if n > cfg.max_points else np.arange(n)
+    R = R[sel]
+    nres = None if normal_residual is None else np.asarray(normal_residual, dtype=float)[sel]
+    groups = np.asarray(groups)[sel]
+    order = np.asarray(order)[sel]
+    folds_group = cv_folds(groups, order, cfg.n_folds, by="group", block_size=cfg.block_size, seed=cfg.seed)
+    folds_block = cv_folds(groups, order, cfg.n_folds, by="block", block_size=cfg.block_size, seed=cfg.seed)
+    meta = meta or {}
+    scores: list[CandidateScore] = []
+    for i, (name, vals) in enumerate(candidates.items()):
+        x = np.asarray(vals)[sel]
+        if x.shape != (len(sel),):
+            raise ValueError(f"candidate {name!r} has shape {np.shape(vals)}, expected ({n},)")
+        if not np.all(np.isfinite(x)):
+            raise ValueError(f"candidate {name!r} has non-finite values")
+        kind = kinds.get(name, "continuous")
+        folds = folds_block if kind == "identity" else folds_group
+        rng = np.random.default_rng([cfg.seed, i])
+        if np.unique(x).size < 2:
+            res = {"score": 0.0, "score_axes": dict.fromkeys("xyz", 0.0), "score_normal": 0.0, "p_value": 1.0,
+                   "null_mean": 0.0, "null_p95": 0.0}
+        else:
+            res = score_candidate(R, x, kind, folds, cfg, rng, nres)
+        m = meta.get(name, {})
+        scores.append(CandidateScore(
+            name=name, kind=kind, score=res["score"], score_axes=res["score_axes"], score_normal=res["score_normal"],
+            p_value=res["p_value"], null_mean=res["null_mean"], null_p95=res["null_p95"],
+            description=m.get("description", ""), unit=m.get("unit", ""), in_model=bool(m.get("in_model", False)),
+        ))
+    adj = holm(np.array([s.p_value for s in scores]))
+    for s, pa in zip(scores, adj):
+        s.p_holm = float(pa)
+        s.significant = bool(pa <= cfg.alpha and s.score >= cfg.min_effect)
+    scores.sort(key=lambda s: (not s.significant, -s.score))
+    return scores

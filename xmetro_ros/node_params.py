@@ -1,0 +1,137 @@
+"""Parameters of ``xmetro_node``: one table with default, unit, meaning, range and whether it may change live.
+
+Loaded from ``config/xmetro.yaml`` (``--ros-args --params-file``). Every parameter is declared with a
+``ParameterDescriptor`` (description with unit, numeric range, read-only flag). :func:`validate` is the node's
+set-parameters callback body: it rejects unknown choices and inconsistent values with a reason. Read-only
+parameters (model, scanner, QoS, pre-processing, history sizes) need a restart; the rest apply to the next scan /
+request.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
+
+__all__ = ["PARAMS", "ParamSpec", "declare_all", "validate", "values_from_node"]
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    name: str
+    default: Any
+    unit: str
+    meaning: str
+    lo: float | None = None
+    hi: float | None = None
+    choices: tuple[str, ...] = ()
+    read_only: bool = False
+
+
+_PI = math.pi
+PARAMS: tuple[ParamSpec, ...] = (
+    ParamSpec("model_dir", "", "path", "model set directory (card.json + ONNX); '' = the shipped default model",
+              read_only=True),
+    ParamSpec("scanner_config", "", "path", "scanner YAML; '' = the packaged config/scanners/default.yaml",
+              read_only=True),
+    ParamSpec("inference_threads", 2, "threads", "ONNX Runtime intra-op threads", 1, 16, read_only=True),
+    ParamSpec("default_lateral_density", 10000.0, "1/m", "settings used when none received: points per metre "
+              "along the laser line", 1.0, 1e6),
+    ParamSpec("default_direction_density", 4000.0, "1/m", "settings used when none received: profiles per metre "
+              "along the scan direction", 1.0, 1e6),
+    ParamSpec("default_exposure_time", 0.0005, "s", "settings used when none received: exposure time", 1e-7, 1.0),
+    ParamSpec("max_points", 2_000_000, "points", "largest cloud (width x height) processed", 1, 100_000_000),
+    ParamSpec("cloud_overflow", "reject", "", "what to do with a cloud over max_points: reject (ERROR) or decimate "
+              "(deterministic stride; verdict at least WARN)", choices=("reject", "decimate")),
+    ParamSpec("reliability", "reliable", "", "QoS reliability of the scan subscription (history depth 5, "
+              "volatile)", choices=("reliable", "best_effort"), read_only=True),
+    ParamSpec("queue_depth", 4, "scans", "scans waiting for the worker; the oldest is dropped (and counted) "
+              "when full", 1, 64, read_only=True),
+    ParamSpec("tolerance", 0.0001, "m", "flag OVER_TOLERANCE when the predicted |error| exceeds it", 1e-7, 0.1),
+    ParamSpec("grazing_incidence_deg", 75.0, "deg", "flag GRAZING_INCIDENCE above this incidence angle", 0.0, 90.0),
+    ParamSpec("grazing_view_deg", 75.0, "deg", "flag GRAZING_VIEW above this view angle", 0.0, 90.0),
+    ParamSpec("domain_margin", 0.05, "fraction", "OUT_OF_DOMAIN margin as a share of each feature's training "
+              "range", 0.0, 10.0),
+    ParamSpec("normal_quality_min", 0.3, "0..1", "flag UNRELIABLE_NORMAL below this normal quality", 0.0, 1.0),
+    ParamSpec("warn_flagged_fraction", 0.25, "fraction", "WARN when more valid points are flagged", 0.0, 1.0),
+    ParamSpec("rescan_usable_fraction", 0.5, "fraction", "RESCAN when fewer valid points are unflagged",
+              0.0, 1.0),
+    ParamSpec("rescan_over_tolerance_fraction", 0.05, "fraction", "RESCAN when more valid points are over "
+              "tolerance", 0.0, 1.0),
+    ParamSpec("min_valid_points", 100, "points", "RESCAN with fewer valid points", 0, 10_000_000),
+    ParamSpec("outlier_nb_neighbors", 20, "points", "statistical outlier removal: neighbours", 1, 200,
+              read_only=True),
+    ParamSpec("outlier_std_ratio", 2.0, "sigma", "statistical outlier removal: std ratio", 0.1, 100.0,
+              read_only=True),
+    ParamSpec("check_frame", True, "", "ERROR FRAME_MISMATCH when the scan frame differs from the settings' frame"),
+    ParamSpec("settings_history", 16, "messages", "ScannerSettings kept to pick the one stamped at or before a "
+              "scan", 1, 1000, read_only=True),
+    ParamSpec("scan_history", 3, "scans", "judged scans kept for ~/explain and ~/recommend_settings", 1, 50,
+              read_only=True),
+    ParamSpec("explain_max_points", 2000, "points", "cap on points explained per ~/explain request", 1, 100_000),
+    ParamSpec("recommend_max_points", 2000, "points", "region subsample cap of ~/recommend_settings "
+              "(deterministic, evenly spaced)", 10, 100_000),
+    ParamSpec("recommend_max_tilt", 0.2618, "rad", "default tilt search range about head X and Y", 0.0, _PI / 2),
+    ParamSpec("recommend_tilt_steps", 3, "steps", "tilt values per axis in [-max, max] (odd keeps 0)", 1, 15),
+    ParamSpec("recommend_max_turn", 1.5708, "rad", "default turn search range about head Z", 0.0, _PI),
+    ParamSpec("recommend_turn_steps", 3, "steps", "turn values in [-max, max] (odd keeps 0)", 1, 15),
+    ParamSpec("recommend_min_coverage", 0.95, "fraction", "discard candidates covering (lit, seen, not grazing) "
+              "less of the region than min(this, current coverage)", 0.0, 1.0),
+    ParamSpec("diagnostics_period", 1.0, "s", "period of /diagnostics (also published at once on a level change)",
+              0.05, 60.0, read_only=True),
+)
+_BY_NAME = {p.name: p for p in PARAMS}
+
+
+def _descriptor(p: ParamSpec) -> ParameterDescriptor:
+    d = ParameterDescriptor(name=p.name, read_only=p.read_only)
+    unit = f" [{p.unit}]" if p.unit else ""
+    choices = f" (one of: {', '.join(p.choices)})" if p.choices else ""
+    d.description = f"{p.meaning}{unit}{choices}"
+    if p.choices:
+        d.additional_constraints = "one of: " + ", ".join(p.choices)
+    if isinstance(p.default, bool):
+        d.type = ParameterType.PARAMETER_BOOL
+    elif isinstance(p.default, int):
+        d.type = ParameterType.PARAMETER_INTEGER
+        if p.lo is not None:
+            d.integer_range = [IntegerRange(from_value=int(p.lo), to_value=int(p.hi), step=1)]
+    elif isinstance(p.default, float):
+        d.type = ParameterType.PARAMETER_DOUBLE
+        if p.lo is not None:
+            d.floating_point_range = [FloatingPointRange(from_value=float(p.lo), to_value=float(p.hi), step=0.0)]
+    else:
+        d.type = ParameterType.PARAMETER_STRING
+    return d
+
+
+def declare_all(node: Any) -> None:
+    """Declare every parameter of :data:`PARAMS` on ``node`` (values from overrides / params file)."""
+    for p in PARAMS:
+        node.declare_parameter(p.name, p.default, _descriptor(p))
+
+
+def validate(changes: dict[str, Any], current: dict[str, Any]) -> str | None:
+    """Reason to reject ``changes`` (name → new value) given the ``current`` values, or None when acceptable.
+
+    rclpy already enforces types, numeric ranges and read-only flags from the descriptors; this adds the choices
+    and cross-parameter rules, and is also used on the start-up values.
+    """
+    for name, value in changes.items():
+        spec = _BY_NAME.get(name)
+        if spec is None:
+            continue  # e.g. use_sim_time
+        if spec.choices and value not in spec.choices:
+            return f"{name} must be one of {', '.join(spec.choices)}, got {value!r}"
+        if isinstance(value, float) and not math.isfinite(value):
+            return f"{name} must be finite"
+        if spec.lo is not None and not isinstance(value, (bool, str)) and not spec.lo <= value <= spec.hi:
+            return f"{name} = {value} is outside [{spec.lo:g}, {spec.hi:g}] {spec.unit}"
+    return None
+
+
+def values_from_node(node: Any) -> dict[str, Any]:
+    """Current values of all our parameters."""
+    return {p.name: node.get_parameter(p.name).value for p in PARAMS}

@@ -1,0 +1,182 @@
+"""Rescan recommendation (ROS-free): which settings and head orientation minimise the predicted error in a region.
+
+Search (exhaustive grid, deterministic):
+- the region's processed points are subsampled to at most ``max_points`` (evenly spaced rows, deterministic);
+- orientations: tilts about head X and head Y in ``linspace(-max_tilt, max_tilt, tilt_steps)`` and turns about head
+  Z in ``linspace(-max_turn, max_turn, turn_steps)`` (defaults 3 × 3 × 3 = 27 orientations, identity included),
+  each applied to the current head pose about the region centroid (``HeadPose.rotated(r, pivot=centroid)``);
+- settings: the candidates given, or the scanner's 27 study configurations.
+For each orientation the geometry-dependent features are recomputed (``FeatureContext.with_pose``), and for each
+settings the settings features (``with_settings``); all candidates of one orientation go into one predict call.
+A point is *covered* when lit and seen at non-grazing angles (acos(N·L) and acos(N·V) under the grazing
+thresholds). Orientations covering less than ``min(min_coverage, current coverage)`` of the region are discarded
+before any prediction. Candidates are ranked by the p95 of the predicted |error| (norm over x, y, z) over their
+covered points, ties by the mean.
+
+Limits (honest): it ranks by the model's *predicted systematic* error only (no random noise, no occlusion by other
+parts of the workpiece, no reachability of the pose); candidates far from the training domain are extrapolations;
+the normals are those of the current scan.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, is_dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from .geometry import HeadPose, matrix_to_quat
+from .scanner import ScannerModel, ScanSettings
+
+__all__ = ["Candidate", "Recommendation", "orientation_grid", "recommend", "subset_context", "coverage_mask",
+           "rotation_xyz"]
+
+
+@dataclass
+class Candidate:
+    settings: ScanSettings
+    rotation: np.ndarray          # 3x3, in the head frame, relative to the current head pose
+    pose: HeadPose                # the resulting head pose (scan frame, mm)
+    mean_mm: float
+    p95_mm: float
+    coverage: float
+
+    @property
+    def quaternion(self) -> np.ndarray:
+        return matrix_to_quat(self.rotation)
+
+    @property
+    def score_mm(self) -> float:
+        return self.p95_mm
+
+
+@dataclass
+class Recommendation:
+    best: Candidate
+    before: Candidate
+    ranked: list[Candidate]       # best first, every kept candidate
+    n_points: int                 # region points used (after the subsample)
+    n_region: int                 # region points before the subsample
+    n_orientations: int
+    n_orientations_kept: int
+    n_settings: int
+    note: str
+
+
+def rotation_xyz(rx: float, ry: float, rz: float) -> np.ndarray:
+    """R = Rz(rz) · Ry(ry) · Rx(rx) (radians), a rotation in the head frame."""
+    cx, sx, cy, sy, cz, sz = np.cos(rx), np.sin(rx), np.cos(ry), np.sin(ry), np.cos(rz), np.sin(rz)
+    r_x = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    r_y = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    r_z = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return r_z @ r_y @ r_x
+
+
+def orientation_grid(max_tilt: float, tilt_steps: int, max_turn: float, turn_steps: int) -> list[np.ndarray]:
+    """Head-frame rotations of the search; ``max_* <= 0`` or 1 step → that axis is not searched."""
+    tilts = np.linspace(-max_tilt, max_tilt, tilt_steps) if max_tilt > 0 and tilt_steps > 1 else np.zeros(1)
+    turns = np.linspace(-max_turn, max_turn, turn_steps) if max_turn > 0 and turn_steps > 1 else np.zeros(1)
+    return [rotation_xyz(a, b, c) for c in turns for a in tilts for b in tilts]
+
+
+def subset_context(ctx: Any, rows: np.ndarray) -> Any:
+    """A FeatureContext restricted to ``rows`` (every per-point array and field sliced)."""
+    m = len(ctx.normals)
+
+    def cut(v: Any) -> Any:
+        if isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == m:
+            return v[rows]
+        if isinstance(v, dict):
+            return {k: cut(x) for k, x in v.items()}
+        return v
+
+    if is_dataclass(ctx):
+        return replace(ctx, **{f.name: cut(getattr(ctx, f.name)) for f in fields(ctx) if f.init})
+    raise TypeError("FeatureContext is expected to be a dataclass")
+
+
+def coverage_mask(ctx: Any, grazing_incidence_deg: float, grazing_view_deg: float) -> np.ndarray:
+    """Points lit and seen at non-grazing angles under the context's geometry."""
+    n = np.asarray(ctx.normals, dtype=np.float64)
+    cos_i = np.einsum("ij,ij->i", n, np.asarray(ctx.L, dtype=np.float64))
+    cos_v = np.einsum("ij,ij->i", n, np.asarray(ctx.V, dtype=np.float64))
+    return (cos_i > np.cos(np.radians(grazing_incidence_deg))) & (cos_v > np.cos(np.radians(grazing_view_deg)))
+
+
+def _stats(pred_mm: np.ndarray, covered: np.ndarray) -> tuple[float, float]:
+    e = np.linalg.norm(pred_mm[covered], axis=1)
+    if len(e) == 0:
+        return float("inf"), float("inf")
+    return float(e.mean()), float(np.percentile(e, 95))
+
+
+def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.ndarray, pose: HeadPose,
+              scanner: ScannerModel, settings: ScanSettings, candidates: list[ScanSettings] | None = None, *,
+              max_points: int = 2000, max_tilt: float = 0.2618, tilt_steps: int = 3, max_turn: float = 1.5708,
+              turn_steps: int = 3, grazing_incidence_deg: float = 75.0, grazing_view_deg: float = 75.0,
+              min_coverage: float = 0.95, batch_rows: int = 400_000) -> Recommendation:
+    """Search settings × orientations for the region ``rows`` of a judged scan (see the module docstring).
+
+    Args:
+        model_set: inference.ModelSet (feature_names, predict in mm).
+        ctx: FeatureContext of the judged scan's processed points.
+        rows: region rows into ``ctx`` (non-empty).
+        before_features: (M, F) the judged features of all rows (the "before" prediction uses them, so it equals
+            the published deviations).
+        pose, scanner, settings: the current head pose (mm), scanner, settings.
+        candidates: settings to try; None → ``scanner.study_configurations()``.
+
+    Raises:
+        ValueError: empty region, or no orientation keeps the required coverage.
+    """
+    from .features import compute_features
+
+    rows = np.asarray(rows, dtype=np.int64)
+    rows = rows[np.isfinite(before_features[rows]).all(axis=1)]
+    if len(rows) == 0:
+        raise ValueError("the region holds no processed point")
+    n_region = len(rows)
+    if n_region > max_points:
+        rows = rows[np.linspace(0, n_region - 1, max_points).round().astype(np.int64)]
+    cands = list(candidates) if candidates else scanner.study_configurations()
+    names = list(model_set.feature_names)
+    sub = subset_context(ctx, rows)
+    centroid = np.asarray(sub.points, dtype=np.float64).mean(axis=0)
+
+    cov_before = coverage_mask(sub, grazing_incidence_deg, grazing_view_deg)
+    pred_before = np.asarray(model_set.predict(before_features[rows]), dtype=np.float64)
+    mean_b, p95_b = _stats(pred_before, cov_before)
+    before = Candidate(settings, np.eye(3), pose, mean_b, p95_b, float(cov_before.mean()))
+    need = min(min_coverage, before.coverage) - 1e-12
+
+    orients = orientation_grid(max_tilt, tilt_steps, max_turn, turn_steps)
+    ranked: list[Candidate] = []
+    n_kept = 0
+    m = len(rows)
+    for r in orients:
+        pose_o = pose.rotated(r, pivot=centroid)
+        ctx_o = sub.with_pose(pose_o, scanner)
+        cov = coverage_mask(ctx_o, grazing_incidence_deg, grazing_view_deg)
+        if cov.mean() < need or not cov.any():
+            continue
+        n_kept += 1
+        # (S, m, F): the S settings versions of the same region cloud, predicted together (predict_batch keeps
+        # one PointNet set partition for all versions, as predict would for each).
+        X = np.stack([compute_features(names, ctx_o.with_settings(s), dtype=np.float32) for s in cands])
+        ok = np.isfinite(X).all(axis=(0, 2))
+        cov = cov & ok
+        X[:, ~ok] = 0.0
+        step = max(1, batch_rows // m)
+        pred = np.concatenate([np.asarray(model_set.predict_batch(X[i:i + step]), dtype=np.float64)
+                               for i in range(0, len(X), step)])
+        for k, s in enumerate(cands):
+            mean_k, p95_k = _stats(pred[k], cov)
+            ranked.append(Candidate(s, r, pose_o, mean_k, p95_k, float(cov.mean())))
+    if not ranked:
+        raise ValueError(f"no orientation keeps the coverage >= {need:.3f} of the region")
+    ranked.sort(key=lambda c: (c.p95_mm, c.mean_mm))
+    note = f"{len(orients)} orientations ({n_kept} kept) x {len(cands)} settings on {m} points"
+    if n_region > m:
+        note += f" (region of {n_region} points subsampled, evenly spaced)"
+    return Recommendation(best=ranked[0], before=before, ranked=ranked, n_points=m, n_region=n_region,
+                          n_orientations=len(orients), n_orientations_kept=n_kept, n_settings=len(cands), note=note)

@@ -1,0 +1,210 @@
+"""Self-contained HTML report of a demo run (``out/demo/report.html``): tables and PNG figures embedded in base64.
+
+Sections: per-scan quality table; per-scan deviation maps (predicted |deviation| and, where the artifact is known,
+the actual |error| = |nominal − measured|, top view in the scan frame, µm colour scale); the SHAP explanation of the
+worst region (mean |SHAP| per feature and axis, from ``~/explain``); the settings recommendation for that region
+(from ``~/recommend_settings``). Inputs are plain numbers (mm, µm as labelled), so the writer needs no ROS.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["ReportScan", "write_report", "deviation_map_png", "shap_bar_png"]
+
+
+@dataclass
+class ReportScan:
+    """One scan of the report.
+
+    Attributes:
+        label: what was scanned and how (artifact, settings).
+        quality: summary dict (``OutputSet.summary_dict()``: verdict, counts, mean/p95 |error| mm, message).
+        points_mm: (N, 3) processed points in the scan frame, mm (None when the scan was in ERROR).
+        predicted_mm: (N, 3) predicted deviations, mm (NaN where none).
+        actual_mm: (N, 3) actual errors nominal − measured, mm, where the artifact is known; else None.
+    """
+
+    index: int
+    label: str
+    quality: dict[str, Any]
+    points_mm: np.ndarray | None = None
+    predicted_mm: np.ndarray | None = None
+    actual_mm: np.ndarray | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+_VERDICTS = ("OK", "WARN", "RESCAN", "ERROR")
+_COLOURS = {"OK": "#2e7d32", "WARN": "#ef6c00", "RESCAN": "#c62828", "ERROR": "#6a1b9a"}
+
+
+def _png(fig: Any) -> str:
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=80, bbox_inches="tight")
+    plt.close(fig)
+    return base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def deviation_map_png(points_mm: np.ndarray, panels: list[tuple[str, np.ndarray]], vmax_um: float | None = None) -> str:
+    """Base64 PNG: one top-view (x, y) scatter per panel, coloured by the norm of the panel's (N, 3) mm values, µm."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    norms = [np.linalg.norm(v, axis=1) * 1e3 for _, v in panels]
+    if vmax_um is None:
+        finite = np.concatenate([n[np.isfinite(n)] for n in norms]) if norms else np.zeros(1)
+        vmax_um = float(np.percentile(finite, 99)) if finite.size else 1.0
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.6), squeeze=False)
+    for ax, (title, _), n in zip(axes[0], panels, norms):
+        ok = np.isfinite(n) & np.isfinite(points_mm).all(axis=1)
+        sc = ax.scatter(points_mm[ok, 0], points_mm[ok, 1], c=n[ok], s=2, cmap="viridis", vmin=0.0,
+                        vmax=max(vmax_um, 1e-6), rasterized=True)
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel("x [mm]")
+        ax.set_ylabel("y [mm]")
+        ax.set_aspect("equal")
+        fig.colorbar(sc, ax=ax, label="|error| [µm]")
+    return _png(fig)
+
+
+def shap_bar_png(feature_names: list[str], mean_abs_shap_um: np.ndarray, axis_names: list[str]) -> str:
+    """Base64 PNG: horizontal bars of mean |SHAP| (µm) per feature, one colour per axis."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    F = len(feature_names)
+    A = len(axis_names)
+    fig, ax = plt.subplots(figsize=(6.0, 0.3 * F + 1.2))
+    y = np.arange(F)
+    h = 0.8 / max(A, 1)
+    for a in range(A):
+        ax.barh(y + a * h, mean_abs_shap_um[:, a], height=h, label=f"axis {axis_names[a]}")
+    ax.set_yticks(y + h * (A - 1) / 2)
+    ax.set_yticklabels(feature_names, fontsize=8)
+    ax.invert_yaxis()
+    ax.set_xlabel("mean |SHAP| [µm]")
+    ax.legend(fontsize=8)
+    return _png(fig)
+
+
+def _e(x: Any) -> str:
+    return html.escape(str(x))
+
+
+def _table(header: list[str], rows: list[list[Any]], raw_cols: frozenset[int] = frozenset()) -> str:
+    th = "".join(f"<th>{_e(h)}</th>" for h in header)
+    body = "".join("<tr>" + "".join(f"<td>{c if i in raw_cols else _e(c)}</td>" for i, c in enumerate(r)) + "</tr>"
+                   for r in rows)
+    return f"<table><thead><tr>{th}</tr></thead><tbody>{body}</tbody></table>"
+
+
+def write_report(
+    path: str | Path,
+    scans: list[ReportScan],
+    *,
+    explain: dict[str, Any] | None = None,
+    recommend: dict[str, Any] | None = None,
+    summary_lines: list[str] | None = None,
+    meta: dict[str, Any] | None = None,
+) -> Path:
+    """Write the HTML report and return its path.
+
+    ``explain``: {"scan", "region", "feature_names", "feature_units", "axis_names", "mean_abs_shap_um" (F, A),
+    "base_values_um", "n_points", "message"} or {"error": text}. ``recommend``: {"rows": [[label, value], ...],
+    "alternatives": [[...], ...], "alternatives_header": [...], "message"} or {"error": text}.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    parts = ["<!DOCTYPE html><html><head><meta charset='utf-8'><title>xmetro demo report</title><style>",
+             "body{font-family:sans-serif;max-width:1100px;margin:1em auto;color:#222}",
+             "table{border-collapse:collapse;font-size:12px;margin:0.5em 0}",
+             "td,th{border:1px solid #bbb;padding:3px 6px;text-align:right}th{background:#eee}",
+             "td:first-child,th:first-child{text-align:left}.v{color:#fff;font-weight:bold;padding:2px 5px}",
+             "pre{background:#f6f6f6;padding:0.6em;font-size:12px;white-space:pre-wrap}</style></head><body>",
+             "<h1>xmetro demo: replay through a live xmetro_node</h1>"]
+    if meta:
+        parts.append(_table(["item", "value"], [[k, v] for k, v in meta.items()]))
+    if summary_lines:
+        parts.append("<h2>Summary</h2><pre>" + _e("\n".join(summary_lines)) + "</pre>")
+
+    parts.append("<h2>Per-scan quality</h2>")
+    rows = []
+    for s in scans:
+        q = s.quality
+        vname = _VERDICTS[q["verdict"]] if 0 <= q["verdict"] < 4 else str(q["verdict"])
+        badge = f"<span class='v' style='background:{_COLOURS.get(vname, '#555')}'>{_e(vname)}</span>"
+        flags = ", ".join(f"{k}:{v}" for k, v in q.get("flag_counts", {}).items() if v)
+        rows.append([
+            s.index, _e(s.label), badge, q["error_code"], q["points_received"], q["points_valid"],
+            q["points_flagged"], f"{q['usable_fraction']:.3f}",
+            " / ".join(f"{v * 1e3:.2f}" for v in q["mean_abs_error_mm"]),
+            " / ".join(f"{v * 1e3:.2f}" for v in q["p95_abs_error_mm"]),
+            "yes" if q["settings_defaulted"] else "no", _e(flags), _e(q["message"]),
+        ])
+    parts.append(_table(["#", "scan", "verdict", "error", "received", "valid", "flagged", "usable",
+                         "mean |e| x/y/z [µm]", "p95 |e| x/y/z [µm]", "defaulted", "flag counts", "message"],
+                        rows, raw_cols=frozenset({1, 2, 11, 12})))
+
+    parts.append("<h2>Deviation maps</h2><p>Top view (x, y) of each processed scan in its frame, coloured by the "
+                 "norm of the predicted deviation (nominal − measured, as the node publishes it) and, for "
+                 "simulated scans whose artifact is known, the actual error of each point on the same scale.</p>")
+    for s in scans:
+        if s.points_mm is None or s.predicted_mm is None:
+            parts.append(f"<h3>#{s.index} {_e(s.label)}</h3><p>no deviations (scan in ERROR)</p>")
+            continue
+        panels = [("predicted |deviation|", s.predicted_mm)]
+        if s.actual_mm is not None:
+            panels.append(("actual |error| (known artifact)", s.actual_mm))
+            d = s.actual_mm - s.predicted_mm
+            ok = np.isfinite(d).all(axis=1)
+            if ok.any():
+                rmse = float(np.sqrt(np.mean(np.sum(d[ok] ** 2, axis=1)))) * 1e3
+                s.extra.setdefault("rmse vs actual [µm]", f"{rmse:.2f}")
+        img = deviation_map_png(s.points_mm, panels)
+        extra = "; ".join(f"{k}: {v}" for k, v in s.extra.items())
+        parts.append(f"<h3>#{s.index} {_e(s.label)}</h3><p>{_e(extra)}</p>"
+                     f"<img alt='deviation map {s.index}' src='data:image/png;base64,{img}'/>")
+
+    parts.append("<h2>Why is the worst region bad? (~/explain, SHAP)</h2>")
+    if not explain:
+        parts.append("<p>not requested</p>")
+    elif "error" in explain:
+        parts.append(f"<p><b>~/explain failed:</b> {_e(explain['error'])}</p>")
+    else:
+        ms = np.asarray(explain["mean_abs_shap_um"], dtype=float)
+        parts.append(f"<p>{_e(explain.get('region', ''))} — {explain['n_points']} points explained; base values "
+                     f"{_e(explain.get('base_values_um'))} µm. {_e(explain.get('message', ''))}</p>")
+        parts.append(f"<img alt='shap' src='data:image/png;base64,"
+                     f"{shap_bar_png(explain['feature_names'], ms, explain['axis_names'])}'/>")
+        order = np.argsort(-ms.sum(axis=1))
+        parts.append(_table(["feature", "unit", *[f"mean |SHAP| {a} [µm]" for a in explain["axis_names"]]],
+                            [[explain["feature_names"][i], explain["feature_units"][i],
+                              *[f"{v:.3f}" for v in ms[i]]] for i in order]))
+
+    parts.append("<h2>How to rescan it? (~/recommend_settings)</h2>")
+    if not recommend:
+        parts.append("<p>not requested</p>")
+    elif "error" in recommend:
+        parts.append(f"<p><b>~/recommend_settings failed:</b> {_e(recommend['error'])}</p>")
+    else:
+        parts.append(f"<p>{_e(recommend.get('message', ''))}</p>")
+        parts.append(_table(["", "value"], recommend["rows"]))
+        if recommend.get("alternatives"):
+            parts.append("<p>Best alternatives (ranked):</p>")
+            parts.append(_table(recommend["alternatives_header"], recommend["alternatives"]))
+    parts.append("</body></html>")
+    path.write_text("\n".join(parts), encoding="utf-8")
+    return path

@@ -1,0 +1,254 @@
+"""The one processing path of a scan (ROS-free), shared by the live node and the offline ``xmetro predict``.
+
+    scan (mm) → point cap → outlier removal + normals (``preprocess.prepare_scan``) → the model's features (names
+    from the model card, ``features.compute_features``, float32) → ONNX Runtime inference (x, y, z) → flags
+    (:mod:`xmetro_ros.flags`) → verdict → quality summary.
+
+Units: millimetres inside (points, deviations, tolerance_mm); the node converts to metres on its topics.
+Deviations are predicted errors ``nominal − measured`` per axis, so ``measured + deviation`` is the corrected point.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from . import flags as fl
+from .scan import Scan
+from .scanner import ScannerModel, SettingsError
+
+__all__ = ["ScanError", "HandlerParams", "ScanResult", "ScanHandler", "decimation_index", "cap_points"]
+
+# Below this many valid points outlier removal / normals are meaningless.
+_MIN_POINTS_TO_PROCESS = 10
+
+
+class ScanError(ValueError):
+    """A scan that cannot be processed. ``code`` is a ScanQuality ERROR_* name without the prefix."""
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+@dataclass(frozen=True)
+class HandlerParams:
+    """Processing parameters (internal units: mm, degrees).
+
+    Attributes:
+        tolerance_mm: OVER_TOLERANCE threshold on the predicted |error| norm, mm.
+        grazing_incidence_deg, grazing_view_deg: grazing thresholds on acos(N·L), acos(N·V).
+        domain_margin: OUT_OF_DOMAIN margin, share of each feature's training range.
+        normal_quality_min: UNRELIABLE_NORMAL below this normal quality (0..1).
+        thresholds: verdict thresholds.
+        max_points, cloud_overflow: cap on width × height and what to do above it ("reject" | "decimate").
+        outlier_nb_neighbors, outlier_std_ratio: statistical outlier removal.
+    """
+
+    tolerance_mm: float = 0.1
+    grazing_incidence_deg: float = 75.0
+    grazing_view_deg: float = 75.0
+    domain_margin: float = 0.05
+    normal_quality_min: float = 0.3
+    thresholds: fl.VerdictThresholds = field(default_factory=fl.VerdictThresholds)
+    max_points: int = 2_000_000
+    cloud_overflow: str = "reject"
+    outlier_nb_neighbors: int = 20
+    outlier_std_ratio: float = 2.0
+
+    @classmethod
+    def from_node_values(cls, v: dict[str, Any]) -> HandlerParams:
+        """From the node's parameter values (SI: tolerance in metres)."""
+        return cls(
+            tolerance_mm=float(v["tolerance"]) * 1e3,
+            grazing_incidence_deg=float(v["grazing_incidence_deg"]),
+            grazing_view_deg=float(v["grazing_view_deg"]),
+            domain_margin=float(v["domain_margin"]),
+            normal_quality_min=float(v["normal_quality_min"]),
+            thresholds=fl.VerdictThresholds(
+                warn_flagged_fraction=float(v["warn_flagged_fraction"]),
+                rescan_usable_fraction=float(v["rescan_usable_fraction"]),
+                rescan_over_tolerance_fraction=float(v["rescan_over_tolerance_fraction"]),
+                min_valid_points=int(v["min_valid_points"]),
+            ),
+            max_points=int(v["max_points"]),
+            cloud_overflow=str(v["cloud_overflow"]),
+            outlier_nb_neighbors=int(v["outlier_nb_neighbors"]),
+            outlier_std_ratio=float(v["outlier_std_ratio"]),
+        )
+
+
+@dataclass
+class ScanResult:
+    """Outcome of :meth:`ScanHandler.process`.
+
+    Attributes:
+        deviations: (N, 3) float64 mm predicted error per point of the (possibly decimated) scan, flat order;
+            NaN for points without a prediction (invalid, outlier).
+        flags: (N,) uint16 flag bits.
+        quality: summary dict (see :meth:`ScanHandler.summarize`), mm units.
+        prepared: the ``preprocess.Prepared`` of the kept points.
+        features: (M, F) float32 model features of the kept points (rows of ``prepared``).
+        predictions: (M, 3) float64 mm model output for those rows.
+        context: the ``features.FeatureContext`` (for the recommender).
+        scan: the scan actually processed (after the point cap).
+    """
+
+    deviations: np.ndarray
+    flags: np.ndarray
+    quality: dict[str, Any]
+    prepared: Any
+    features: np.ndarray
+    predictions: np.ndarray
+    context: Any
+    scan: Scan
+
+
+def decimation_index(n: int, max_points: int) -> np.ndarray:
+    """Deterministic evenly spaced subset of ``range(n)`` with at most ``max_points`` entries."""
+    if n <= max_points:
+        return np.arange(n)
+    stride = -(-n // max_points)
+    return np.arange(0, n, stride)
+
+
+def cap_points(scan: Scan, max_points: int, overflow: str) -> tuple[Scan, np.ndarray | None]:
+    """Apply the point cap: the scan unchanged (None), or a decimated unorganized copy and the kept flat indices.
+
+    Raises:
+        ScanError("TOO_MANY_POINTS"): over the cap with ``overflow == "reject"``.
+    """
+    n = int(np.prod(scan.shape))
+    if n <= max_points:
+        return scan, None
+    if overflow != "decimate":
+        raise ScanError("TOO_MANY_POINTS", f"cloud has {n} points > max_points {max_points} (cloud_overflow=reject)")
+    keep = decimation_index(n, max_points)
+    pts = np.asarray(scan.points).reshape(-1, 3)[keep]
+    fields = {k: np.asarray(v).reshape(-1)[keep] for k, v in scan.fields.items()}
+    exp = None if scan.expected_error is None else np.asarray(scan.expected_error).reshape(-1, 3)[keep]
+    return replace(scan, points=pts, fields=fields, expected_error=exp), keep
+
+
+class ScanHandler:
+    """Judge scans with one model set.
+
+    Args:
+        model_set: an ``inference.ModelSet`` (feature names, domain, predict).
+        scanner: the scanner model (settings range, baseline).
+        params: processing parameters; replace ``handler.params`` to change them live.
+    """
+
+    def __init__(self, model_set: Any, scanner: ScannerModel, params: HandlerParams | None = None) -> None:
+        self.model = model_set
+        self.scanner = scanner
+        self.params = params or HandlerParams()
+
+    def preprocess_config(self) -> Any:
+        from .preprocess import PreprocessConfig
+
+        return PreprocessConfig(nb_neighbors=self.params.outlier_nb_neighbors, std_ratio=self.params.outlier_std_ratio)
+
+    def process(self, scan: Scan, settings_defaulted: bool = False) -> ScanResult:
+        """Judge one scan (see the module docstring).
+
+        Raises:
+            ScanError: with the ScanQuality error code (TOO_MANY_POINTS, NO_VALID_POINTS, INVALID_SETTINGS,
+                MISSING_INPUT_FIELD, MODEL_UNAVAILABLE).
+        """
+        from .features import MissingFieldError, compute_features
+        from .features import FeatureContext
+        from .preprocess import PreprocessError, prepare_scan
+
+        p = self.params
+        if self.model is None:
+            raise ScanError("MODEL_UNAVAILABLE", "no model loaded")
+        scan, kept = cap_points(scan, p.max_points, p.cloud_overflow)
+        try:
+            scan.settings.validate(self.scanner.settings_range)
+        except SettingsError as e:
+            raise ScanError("INVALID_SETTINGS", f"invalid scan settings: {e}") from e
+        n = int(np.prod(scan.shape))
+        if n == 0:
+            raise ScanError("EMPTY_CLOUD", "the scan has no points")
+        valid = scan.valid_mask()
+        n_valid = int(valid.sum())
+        if n_valid == 0:
+            raise ScanError("NO_VALID_POINTS", f"all {n} points are NaN/Inf")
+        if n_valid < _MIN_POINTS_TO_PROCESS:
+            raise ScanError("NO_VALID_POINTS", f"only {n_valid} finite points (< {_MIN_POINTS_TO_PROCESS})")
+        missing = sorted(set(self.model.required_fields()) - set(scan.fields))
+        if missing:
+            raise ScanError("MISSING_INPUT_FIELD", f"the model needs per-point field(s) {', '.join(missing)} "
+                                                   f"that the cloud lacks (has: {', '.join(sorted(scan.fields))})")
+
+        try:
+            prepared = prepare_scan(scan, self.preprocess_config(), scanner=self.scanner)
+        except PreprocessError as e:
+            raise ScanError("NO_VALID_POINTS", f"pre-processing failed: {e}") from e
+        ctx = FeatureContext.from_prepared(prepared)
+        try:
+            X = compute_features(list(self.model.feature_names), ctx, dtype=np.float32)
+        except MissingFieldError as e:
+            raise ScanError("MISSING_INPUT_FIELD", str(e)) from e
+        # Rows with a non-finite feature get NaN from the model (and are kept out of PointNet sets).
+        pred = np.asarray(self.model.predict(X), dtype=np.float64)
+        finite = np.isfinite(pred).all(axis=1)
+
+        idx = np.asarray(prepared.index, dtype=np.int64)
+        dev = np.full((n, 3), np.nan, dtype=np.float64)
+        dev[idx] = pred
+        flags = np.zeros(n, dtype=np.uint16)
+        flags[~valid] |= fl.FLAG_INVALID_POINT
+        flags[np.asarray(prepared.outlier, dtype=np.int64)] |= fl.FLAG_OUTLIER
+        g = prepared.geometry
+        kept_flags = fl.angle_flags(prepared.normals, g.L, g.V, p.grazing_incidence_deg, p.grazing_view_deg)
+        lo, hi = self.model.domain
+        kept_flags |= fl.domain_flags(X, lo, hi, p.domain_margin)
+        kept_flags[np.asarray(prepared.normal_quality) < p.normal_quality_min] |= fl.FLAG_UNRELIABLE_NORMAL
+        dnorm = np.linalg.norm(pred, axis=1)
+        kept_flags[dnorm > p.tolerance_mm] |= fl.FLAG_OVER_TOLERANCE
+        kept_flags[~finite] |= fl.FLAG_INVALID_POINT
+        flags[idx] |= kept_flags
+
+        quality = self.summarize(flags, pred[finite], n_valid, settings_defaulted, kept is not None, n)
+        return ScanResult(deviations=dev, flags=flags, quality=quality, prepared=prepared, features=X,
+                          predictions=pred, context=ctx, scan=scan)
+
+    def summarize(self, flags: np.ndarray, pred: np.ndarray, n_valid: int, settings_defaulted: bool,
+                  decimated: bool, n_received: int) -> dict[str, Any]:
+        """Quality summary (mm): counts, per-flag counts, mean / p95 |error| per axis, verdict and its reason."""
+        n_flagged = int(np.count_nonzero(flags))
+        counts = fl.flag_counts(flags)
+        # Usable = valid and unflagged; the verdict fractions are over valid points (not the empty grid cells).
+        n_usable = n_received - n_flagged
+        over = counts[fl.FLAG_BITS.index(fl.FLAG_OVER_TOLERANCE)]
+        code, reason = fl.verdict(n_valid, n_usable, n_flagged - (n_received - n_valid), over, self.params.thresholds,
+                                  settings_defaulted=settings_defaulted, decimated=decimated)
+        a = np.abs(pred)
+        mean = a.mean(axis=0) if len(a) else np.zeros(3)
+        p95 = np.percentile(a, 95, axis=0) if len(a) else np.zeros(3)
+        notes = [reason]
+        if settings_defaulted:
+            notes.append("no valid ScannerSettings at or before the scan: configured defaults used")
+        if decimated:
+            notes.append(f"cloud decimated to {n_received} points (max_points)")
+        return {
+            "verdict": code,
+            "verdict_name": fl.VERDICT_NAMES[code],
+            "error_code": "NONE",
+            "message": "; ".join(dict.fromkeys(notes)),
+            "points_received": n_received,
+            "points_valid": n_valid,
+            "points_flagged": n_flagged,
+            "flag_names": list(fl.FLAG_NAMES),
+            "flag_counts": counts,
+            "mean_abs_error_mm": [float(x) for x in mean],
+            "p95_abs_error_mm": [float(x) for x in p95],
+            "usable_fraction": n_usable / n_received if n_received else 0.0,
+            "settings_defaulted": bool(settings_defaulted),
+            "decimated": bool(decimated),
+            "model_id": getattr(self.model, "id", ""),
+        }
