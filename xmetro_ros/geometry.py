@@ -153,16 +153,25 @@ def point_geometry(points: np.ndarray, pose: HeadPose, baseline_mm: float, dtype
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
-    ph = pose.to_head(pts).astype(dtype, copy=False)
-    # Source lies on the head's Y axis at the point's head-Y coordinate: (0, y, 0) - p_h = (-x, 0, -z).
-    to_src = np.empty_like(ph)
-    to_src[:, 0] = -ph[:, 0]
-    to_src[:, 1] = 0.0
-    to_src[:, 2] = -ph[:, 2]
-    to_cam = to_src.copy()
-    to_cam[:, 1] = baseline_mm
+    # Column-wise arithmetic (no (N,3) norms / where-divides): this runs on every live scan of up to ~200k points.
     rot = pose.rotation.astype(dtype)
-    dist = np.linalg.norm(to_src, axis=1)
-    L = unit(to_src @ rot.T)
-    V = unit(to_cam @ rot.T)
-    return PointGeometry(L=L, V=V, source_distance=dist, standoff=-ph[:, 2], u=ph[:, 0], s=ph[:, 1])
+    ph = (pts - pose.position).astype(dtype, copy=False) @ rot
+    x, y, z = ph[:, 0], ph[:, 1], ph[:, 2]
+    xz2 = x * x + z * z
+    # Source lies on the head's Y axis at the point's head-Y coordinate: to_src = (0, y, 0) - p_h = (-x, 0, -z).
+    dist = np.sqrt(xz2)
+    inv_s = np.divide(1.0, dist, out=np.zeros_like(dist), where=dist > 0)
+    dcam = np.sqrt(xz2 + dtype(baseline_mm) ** 2)
+    inv_c = np.divide(1.0, dcam, out=np.zeros_like(dcam), where=dcam > 0)
+    L = np.empty_like(ph)
+    L[:, 0] = -x * inv_s
+    L[:, 1] = 0.0
+    L[:, 2] = -z * inv_s
+    V = np.empty_like(ph)
+    V[:, 0] = -x * inv_c
+    V[:, 1] = baseline_mm * inv_c
+    V[:, 2] = -z * inv_c
+    if not np.array_equal(pose.rotation, np.eye(3)):  # unit vectors in the head frame → scan frame
+        L = L @ rot.T
+        V = V @ rot.T
+    return PointGeometry(L=L, V=V, source_distance=dist, standoff=-z, u=x.copy(), s=y.copy())

@@ -2,13 +2,13 @@
 
 Two paths:
 
-- **Organized grid** (H profiles × W points, the virtual and live scanners): fully vectorised on the grid.
-  Outliers are points whose offset from the line through their two grid neighbours is large relative to the
-  neighbour spacing in *both* grid directions (a spurious return kinks both its profile and its column), plus
-  points with no valid 4-neighbour within ``grid_gap_factor`` median spacings. Normals are the cross product of
-  the row and column tangents (NaN-aware central differences), box-averaged over a ``grid_window`` × ``grid_window``
-  window — a plane fit on the regular grid. Quality = |mean of the raw unit normals in the window| (1 = planar,
-  consistent, full window; lower near holes, edges, outliers and noise).
+- **Organized grid** (H profiles × W points, the virtual and live scanners): fully vectorised on the grid, float32.
+  Outliers are points far from the chord of their two grid neighbours in *both* grid directions (a spurious
+  return is off along its profile and its column; its neighbours only along one), relative to a local noise
+  scale, plus points with no valid 4-neighbour within ``grid_gap_factor`` median spacings. Raw normals are the
+  cross product of the column and row tangents (NaN-aware central differences); the normal is the normalised
+  mean of the raw unit normals over a ``grid_window`` × ``grid_window`` box (a plane-fit-like average) and the
+  quality is the length of that mean (1 = full, planar, noise-free window; lower near holes, edges, noise).
 - **Unorganized** (N × 3): open3d statistical outlier removal and KD-tree normal estimation (hybrid radius / max_nn),
   as in the study, after removing exact duplicate points (real bags hold many; they break the neighbour statistics
   and make open3d slow). Quality = 1 − nearest-neighbour distance / radius (clipped to [0, 1]).
@@ -55,9 +55,10 @@ class PreprocessConfig:
         normal_radius_mm, max_nn: open3d hybrid KD-tree search for normals (unorganized path).
         use_grid: use the organized-grid path when the scan is organized.
         grid_window: side of the box window (grid cells, odd) the grid normals are averaged over.
-        grid_kink_min: a point is an outlier when its offset from both neighbour lines exceeds this many
-            neighbour spacings (and the robust cloud statistic below).
-        grid_kink_sigma: ... and exceeds median + grid_kink_sigma × 1.4826 MAD of that ratio over the cloud.
+        grid_min_offset_mm: a point is an outlier when its offset from the chords of its grid neighbours (in both
+            directions) exceeds this (mm) ...
+        grid_offset_factor: ... and this many times the local mean offset (noise scale) over
+            grid_scale_window × grid_scale_window cells (see grid_outliers).
         grid_gap_factor: a point whose nearest valid 4-neighbour is farther than this many median spacings is an
             outlier (isolated return).
         min_points: fewer valid points than this after cleaning → PreprocessError.
@@ -65,12 +66,13 @@ class PreprocessConfig:
 
     nb_neighbors: int = 20
     std_ratio: float = 2.0
-    normal_radius_mm: float = 1.0
+    normal_radius_mm: float = 1.5
     max_nn: int = 30
     use_grid: bool = True
     grid_window: int = 5
-    grid_kink_min: float = 0.5
-    grid_kink_sigma: float = 8.0
+    grid_min_offset_mm: float = 0.05
+    grid_offset_factor: float = 6.0
+    grid_scale_window: int = 9
     grid_gap_factor: float = 20.0
     min_points: int = 3
 
@@ -204,7 +206,7 @@ def estimate_normals(
     *,
     grid_shape: tuple[int, int] | None = None,
     grid_index: np.ndarray | None = None,
-    radius_mm: float = 1.0,
+    radius_mm: float = 1.5,
     max_nn: int = 30,
     toward: np.ndarray | None = None,
     grid_window: int = 5,
@@ -287,21 +289,12 @@ def _planes(grid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nd
     return x, y, z, valid
 
 
-def _robust_threshold(values: np.ndarray, floor: float, sigma: float, max_samples: int = 20000) -> float:
-    """max(floor, median + sigma × 1.4826 MAD) of ``values`` (a strided subsample keeps it O(20k))."""
-    step = max(1, len(values) // max_samples)
-    s = values[::step]
-    med = float(np.median(s))
-    mad = float(np.median(np.abs(s - med)))
-    return max(floor, med + sigma * 1.4826 * mad)
-
-
 def _grid_outliers_planes(
-    x: np.ndarray, y: np.ndarray, z: np.ndarray, valid: np.ndarray, kink_min: float, kink_sigma: float,
-    gap_factor: float,
+    x: np.ndarray, y: np.ndarray, z: np.ndarray, valid: np.ndarray, min_offset_mm: float, offset_factor: float,
+    gap_factor: float, scale_window: int = 9,
 ) -> np.ndarray:
     h, w = valid.shape
-    score = np.full((h, w), np.inf, dtype=np.float32)
+    offset = np.full((h, w), np.inf, dtype=np.float32)
     nearest = np.full((h, w), np.inf, dtype=np.float32)
     with np.errstate(invalid="ignore"):
         for axis in (0, 1):
@@ -318,37 +311,43 @@ def _grid_outliers_planes(
             c = (slice(1, -1), slice(None)) if axis == 0 else (slice(None), slice(1, -1))
             p = (slice(None, -2), slice(None)) if axis == 0 else (slice(None), slice(None, -2))
             n = (slice(2, None), slice(None)) if axis == 0 else (slice(None), slice(2, None))
+            # offset of the point from the chord midpoint of its two neighbours: |p- + p+ - 2p| / 2
             k2 = (x[p] + x[n] - 2 * x[c]) ** 2 + (y[p] + y[n] - 2 * y[c]) ** 2 + (z[p] + z[n] - 2 * z[c]) ** 2
-            s2 = (x[n] - x[p]) ** 2 + (y[n] - y[p]) ** 2 + (z[n] - z[p]) ** 2
-            ratio = np.sqrt(k2 / np.maximum(s2, 1e-18))
-            np.fmin(score[c], ratio, out=score[c])  # NaN (missing neighbour) keeps the other direction's value
+            np.fmin(offset[c], 0.5 * np.sqrt(k2), out=offset[c])  # NaN (missing neighbour): other direction
     out = np.zeros((h, w), dtype=bool)
-    judged = valid & np.isfinite(score)
-    if judged.sum() >= 10:
-        s = score[judged]
-        out[judged] = s > _robust_threshold(s, kink_min, kink_sigma)
+    judged = valid & np.isfinite(offset)
+    if judged.any():
+        # local noise scale: window mean of the offsets of the judged cells
+        off0 = np.where(judged, offset, np.float32(0))
+        cnt = ndimage.uniform_filter(judged.astype(np.float32), size=scale_window, mode="constant")
+        mean = ndimage.uniform_filter(off0, size=scale_window, mode="constant")
+        np.divide(mean, cnt, out=mean, where=cnt > 0)
+        thr = np.maximum(np.float32(min_offset_mm), np.float32(offset_factor) * mean)
+        out = judged & (offset > thr)
     has_nb = valid & np.isfinite(nearest)
     if has_nb.any():
-        spacing = _robust_threshold(nearest[has_nb], 0.0, 0.0)  # median spacing
+        spacing = float(np.median(nearest[has_nb][:: max(1, int(has_nb.sum()) // 20000)]))
         out |= has_nb & (nearest > gap_factor * max(spacing, 1e-9))
     out |= valid & ~np.isfinite(nearest)  # no valid 4-neighbour at all: can be neither judged nor given a normal
     return out
 
 
 def grid_outliers(
-    grid: np.ndarray, kink_min: float = 0.5, kink_sigma: float = 8.0, gap_factor: float = 20.0
+    grid: np.ndarray, min_offset_mm: float = 0.05, offset_factor: float = 6.0, gap_factor: float = 20.0,
+    scale_window: int = 9,
 ) -> np.ndarray:
     """Outliers of an organized cloud (H, W, 3) mm with NaN holes. Returns a boolean (H, W) mask (True = outlier;
     holes are never outliers).
 
-    Kink ratio along a grid direction = |p[i-1] + p[i+1] - 2 p[i]| / |p[i+1] - p[i-1]|: the offset of the point from
-    the chord of its two neighbours in units of their spacing (≈ h / R on a smooth surface, ≈ δ / h for a return
-    displaced by δ). A spurious return kinks both directions, its neighbours only one: the score is the minimum
-    over the directions that have both neighbours. Outlier: score > max(kink_min, median + kink_sigma × 1.4826 MAD).
-    Points whose nearest valid 4-neighbour is farther than gap_factor × the median spacing, or that have none,
-    are outliers too (isolated returns)."""
+    Offset along a grid direction = |p[i-1] + p[i+1] - 2 p[i]| / 2: the distance of the point from the chord
+    midpoint of its two neighbours (≈ h² / 8R on a smooth surface, ≈ δ for a return displaced by δ). A spurious
+    return is off in both directions, its neighbours in one only: the score is the minimum over the directions
+    that have both neighbours. Outlier: score > max(min_offset_mm, offset_factor × the window mean of the scores
+    over ``scale_window`` × ``scale_window`` cells) — a local noise scale, since noise grows toward grazing
+    incidence. Points whose nearest valid 4-neighbour is farther than gap_factor × the median spacing, or that
+    have none, are outliers too (isolated returns)."""
     x, y, z, valid = _planes(grid)
-    return _grid_outliers_planes(x, y, z, valid, kink_min, kink_sigma, gap_factor)
+    return _grid_outliers_planes(x, y, z, valid, min_offset_mm, offset_factor, gap_factor, scale_window)
 
 
 def _grid_normals_planes(
@@ -426,14 +425,19 @@ def prepare_scan(
     flat = pts_all.reshape(-1, 3)
     if len(flat) == 0:
         raise PreprocessError("empty point cloud")
-    valid = np.isfinite(flat).all(axis=1)
-    if not valid.any():
-        raise PreprocessError(f"no finite point in the cloud ({len(flat)} points, all NaN/inf)")
     grid = scan.organized and cfg.use_grid
+    if not grid:
+        valid = np.isfinite(flat).all(axis=1)
+        if not valid.any():
+            raise PreprocessError(f"no finite point in the cloud ({len(flat)} points, all NaN/inf)")
     if grid:
         h, w = scan.shape
         x, y, z, gvalid = _planes(pts_all)
-        out_mask = _grid_outliers_planes(x, y, z, gvalid, cfg.grid_kink_min, cfg.grid_kink_sigma, cfg.grid_gap_factor)
+        n_valid = int(np.count_nonzero(gvalid))
+        if n_valid == 0:
+            raise PreprocessError(f"no finite point in the cloud ({len(flat)} points, all NaN/inf)")
+        out_mask = _grid_outliers_planes(x, y, z, gvalid, cfg.grid_min_offset_mm, cfg.grid_offset_factor,
+                                         cfg.grid_gap_factor, cfg.grid_scale_window)
         outlier = np.flatnonzero(out_mask)
         if remove and outlier.size:
             for c in (x, y, z):
@@ -450,6 +454,7 @@ def prepare_scan(
         points = flat[index]
     else:
         vidx = np.flatnonzero(valid)
+        n_valid = len(vidx)
         keep = remove_outliers(flat[vidx], cfg.nb_neighbors, cfg.std_ratio)
         outlier = vidx[~keep]
         index = vidx[keep] if remove else vidx
@@ -479,5 +484,5 @@ def prepare_scan(
         scanner=scanner,
         geometry=geom,
         shape=scan.shape,
-        meta={"path": "grid" if grid else "open3d", "n_valid": int(valid.sum())},
+        meta={"path": "grid" if grid else "open3d", "n_valid": n_valid},
     )

@@ -91,7 +91,8 @@ def subset_context(ctx: Any, rows: np.ndarray) -> Any:
         return v
 
     if is_dataclass(ctx):
-        return replace(ctx, **{f.name: cut(getattr(ctx, f.name)) for f in fields(ctx) if f.init})
+        return replace(ctx, **{f.name: ({} if f.name.startswith("_") else cut(getattr(ctx, f.name)))
+                               for f in fields(ctx) if f.init})
     raise TypeError("FeatureContext is expected to be a dataclass")
 
 

@@ -225,7 +225,7 @@ class _Replayer:
         from rclpy.serialization import deserialize_message
         from sensor_msgs.msg import PointCloud2
 
-        from .msg import ScanQuality, ScannerSettings
+        from .msg import ScannerSettings, ScanQuality
         from .ros_util import wait_for
 
         node = self.node
@@ -381,7 +381,7 @@ def replay_bag(
                             "settings (and default head pose) to every scan; ScanQuality.settings_defaulted says so")
     if len(scan_topics) > 1:
         result.notes.append(f"{len(scan_topics)} PointCloud2 topics ({', '.join(scan_topics)}) all replayed "
-                            f"into {scan_topic}, in log-time order")
+                            f"into {scan_topic}, in the order of the bag")
     result.skipped = {t: ty for t, ty in bag_topics.items() if t not in set(scan_topics) | set(settings_topics)}
     rep = _Replayer(node_name, scan_topic, settings_topic, result.recorded, log)
     t_start = time.monotonic()

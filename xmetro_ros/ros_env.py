@@ -2,7 +2,8 @@
 
 - ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``: discovery only on this host.
 - a private ``ROS_DOMAIN_ID`` (fresh per test run / demo unless the caller set one).
-- ``FASTRTPS_DEFAULT_PROFILES_FILE``: config/fastdds_localhost.xml (shared memory + UDP on 127.0.0.1 only).
+- ``FASTDDS_DEFAULT_PROFILES_FILE``: config/fastdds_localhost.xml (shared memory + UDP on 127.0.0.1 only). The
+  wheels carry Fast DDS 3, which reads only this name (the old FASTRTPS_ name is removed, so it cannot override).
 - ``RMW_IMPLEMENTATION=rmw_fastrtps_cpp`` (the only RMW available from the wheels).
 Tests and the demo additionally run inside a private network namespace when root (tools/netns_run).
 """
@@ -37,7 +38,7 @@ def ros_env(domain_id: int | None = None, base: Mapping[str, str] | None = None)
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     env.pop("ROS_STATIC_PEERS", None)
     profile = str(config_path(DDS_PROFILE_NAME))
-    env["FASTRTPS_DEFAULT_PROFILES_FILE"] = profile
+    env.pop("FASTRTPS_DEFAULT_PROFILES_FILE", None)
     env["FASTDDS_DEFAULT_PROFILES_FILE"] = profile
     env["RMW_IMPLEMENTATION"] = "rmw_fastrtps_cpp"
     return env
@@ -46,9 +47,9 @@ def ros_env(domain_id: int | None = None, base: Mapping[str, str] | None = None)
 def apply_ros_env(domain_id: int | None = None) -> dict[str, str]:
     """Apply :func:`ros_env` to this process (before rclpy.init) and return the variables set."""
     env = ros_env(domain_id)
-    keys = ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "FASTRTPS_DEFAULT_PROFILES_FILE",
-            "FASTDDS_DEFAULT_PROFILES_FILE", "RMW_IMPLEMENTATION")
+    keys = ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "FASTDDS_DEFAULT_PROFILES_FILE", "RMW_IMPLEMENTATION")
     os.environ.pop("ROS_STATIC_PEERS", None)
+    os.environ.pop("FASTRTPS_DEFAULT_PROFILES_FILE", None)
     for k in keys:
         os.environ[k] = env[k]
     return {k: env[k] for k in keys}

@@ -18,7 +18,7 @@ from rclpy.executors import SingleThreadedExecutor
 
 from .ros_env import apply_ros_env
 
-__all__ = ["NodeSpinner", "call_service", "wait_for", "ServiceTimeoutError", "new_context"]
+__all__ = ["NodeSpinner", "NodeProcess", "call_service", "wait_for", "ServiceTimeoutError", "new_context"]
 
 
 class ServiceTimeoutError(TimeoutError):
@@ -112,3 +112,108 @@ def call_service(client: Any, request: Any, timeout: float = 60.0, attempt_timeo
         client.remove_pending_request(future)
         if time.monotonic() >= deadline:
             raise ServiceTimeoutError(f"service {client.srv_name} did not answer within {timeout:g} s")
+
+
+class NodeProcess:
+    """Run ``xmetro_node`` as a child process (``python -m xmetro_ros.node``) with the localhost ROS environment.
+
+    ``start()`` launches it and waits for its ready log line (``node.READY_MESSAGE``); ``stop()`` sends SIGINT and
+    waits (SIGKILL after ``stop_timeout``). Its combined stdout/stderr lines are kept in ``lines``. Usable as a
+    context manager.
+
+    Args:
+        params_file: a ROS params file (e.g. config/xmetro.yaml) or None.
+        params: parameter overrides {name: value} (``-p name:=value``).
+        domain_id: ROS_DOMAIN_ID for the child (None: this process's, else a fresh one).
+        node_name: remaps the node name (``-r __node:=NAME``).
+        env: extra environment variables.
+    """
+
+    def __init__(self, params_file: str | None = None, params: dict[str, Any] | None = None,
+                 domain_id: int | None = None, node_name: str | None = None, env: dict[str, str] | None = None,
+                 stop_timeout: float = 10.0) -> None:
+        self.params_file = params_file
+        self.params = dict(params or {})
+        self.domain_id = domain_id
+        self.node_name = node_name
+        self.extra_env = dict(env or {})
+        self.stop_timeout = stop_timeout
+        self.lines: list[str] = []
+        self.proc: Any = None
+        self._ready = threading.Event()
+        self._reader: threading.Thread | None = None
+
+    def command(self) -> list[str]:
+        import sys
+
+        cmd = [sys.executable, "-m", "xmetro_ros.node", "--ros-args"]
+        if self.params_file:
+            cmd += ["--params-file", str(self.params_file)]
+        for k, v in self.params.items():
+            val = str(v).lower() if isinstance(v, bool) else (f'"{v}"' if v == "" else str(v))
+            cmd += ["-p", f"{k}:={val}"]
+        if self.node_name:
+            cmd += ["-r", f"__node:={self.node_name}"]
+        return cmd
+
+    def start(self, timeout: float = 60.0) -> NodeProcess:
+        """Launch and wait for the ready line; raise RuntimeError (with the output) if it exits or times out."""
+        import os
+        import subprocess
+
+        from .node import READY_MESSAGE
+        from .ros_env import ros_env
+
+        env = ros_env(self.domain_id)
+        env.update(self.extra_env)
+        env.setdefault("MALLOC_ARENA_MAX", "2")
+        env.setdefault("OMP_NUM_THREADS", "2")
+        env.setdefault("OPENBLAS_NUM_THREADS", "2")
+        env["PYTHONUNBUFFERED"] = "1"
+        self.proc = subprocess.Popen(self.command(), env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                     text=True, bufsize=1, cwd=os.getcwd())
+
+        def read() -> None:
+            assert self.proc is not None and self.proc.stdout is not None
+            for line in self.proc.stdout:
+                self.lines.append(line.rstrip("\n"))
+                if READY_MESSAGE in line:
+                    self._ready.set()
+
+        self._reader = threading.Thread(target=read, name="node-process-reader", daemon=True)
+        self._reader.start()
+        deadline = time.monotonic() + timeout
+        while not self._ready.wait(0.1):
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                out = "\n".join(self.lines[-40:])
+                self.stop()
+                raise RuntimeError(f"xmetro_node did not become ready (exit code {self.proc.returncode}):\n{out}")
+        return self
+
+    @property
+    def pid(self) -> int:
+        return int(self.proc.pid)
+
+    def stop(self) -> int | None:
+        """SIGINT, wait, SIGKILL if needed; return the exit code."""
+        import signal
+        import subprocess
+
+        if self.proc is None:
+            return None
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(self.stop_timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(5.0)
+        if self._reader is not None:
+            self._reader.join(timeout=5.0)
+        return self.proc.returncode
+
+    def __enter__(self) -> NodeProcess:
+        return self.start() if self.proc is None else self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()

@@ -158,8 +158,7 @@ class ScanHandler:
             ScanError: with the ScanQuality error code (TOO_MANY_POINTS, NO_VALID_POINTS, INVALID_SETTINGS,
                 MISSING_INPUT_FIELD, MODEL_UNAVAILABLE).
         """
-        from .features import MissingFieldError, compute_features
-        from .features import FeatureContext
+        from .features import FeatureContext, MissingFieldError, compute_features
         from .preprocess import PreprocessError, prepare_scan
 
         p = self.params

@@ -120,3 +120,15 @@ def run(args: argparse.Namespace) -> int:
         for t, ty in sorted(recorder.unknown_types.items()):
             print(f"  skipped {t}: type {ty} not installed")
     return rc
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m xmetro_ros.bag.cli record ...``: the same command without the other areas' CLIs."""
+    parser = argparse.ArgumentParser(prog="xmetro")
+    register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    return int(args.func(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

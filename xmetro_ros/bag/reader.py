@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import struct
+import zlib
 from collections import Counter
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -25,8 +26,8 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from mcap.records import Attachment, Channel, Chunk, Metadata, ReadDataStream, Schema
-from mcap.stream_reader import get_chunk_data_stream
+import zstandard
+from mcap.records import Attachment, Channel, Metadata, ReadDataStream, Schema
 from rclpy.serialization import deserialize_message
 
 from .schema import UnknownTypeError, message_class
@@ -40,6 +41,33 @@ _OP_HEADER, _OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK = 0x01, 
 _OP_MESSAGE_INDEX, _OP_ATTACHMENT, _OP_METADATA, _OP_DATA_END = 0x07, 0x09, 0x0C, 0x0F
 _REC = struct.Struct("<BQ")
 _MSG = struct.Struct("<HIQQ")
+_CHUNK = struct.Struct("<QQQI")
+
+
+def _open_chunk(body: memoryview, hdr: list[int]) -> memoryview:
+    """Chunk record body → its uncompressed records, CRC checked, without extra copies; fills ``hdr`` with the
+    (start, end) log times as soon as they are parsed."""
+    start, end, usize, crc = _CHUNK.unpack_from(body, 0)
+    hdr += [start, end]
+    (clen,) = struct.unpack_from("<I", body, 28)
+    compression = bytes(body[32: 32 + clen]).decode()
+    (rlen,) = struct.unpack_from("<Q", body, 32 + clen)
+    data = body[40 + clen: 40 + clen + rlen]
+    if len(data) != rlen:
+        raise ValueError("chunk records overrun the chunk record")
+    if compression == "zstd":
+        data = memoryview(zstandard.ZstdDecompressor().decompress(data, max_output_size=usize))
+    elif compression == "lz4":
+        import lz4.frame
+
+        data = memoryview(lz4.frame.decompress(data))
+    elif compression:
+        raise ValueError(f"unsupported chunk compression {compression!r}")
+    if len(data) != usize:
+        raise ValueError(f"chunk decompressed to {len(data)} bytes, header says {usize}")
+    if crc and zlib.crc32(data) != crc:
+        raise ValueError(f"chunk CRC mismatch (stored {crc:#010x}, computed {zlib.crc32(data):#010x})")
+    return data
 
 
 class BagFormatError(ValueError):
@@ -302,16 +330,13 @@ class BagReader:
                 if op != _OP_MESSAGE_INDEX and pending_lost is not None:
                     pending_lost = None
                 if op == _OP_CHUNK:
-                    chunk = None
+                    hdr: list[int] = []
                     try:
-                        chunk = Chunk.read(ReadDataStream(BytesIO(body)))
-                        stream, _n = get_chunk_data_stream(chunk, validate_crc=True)
-                        data = memoryview(stream.read(_n))
+                        data = _open_chunk(memoryview(body), hdr)
                         items = list(records(data, pos, partial=False))
                     except Exception as e:  # CRC mismatch, bad compression, overrunning records
-                        pending_lost = LostData(key, pos, 9 + length, f"corrupted chunk: {e!r}", None,
-                                                chunk.message_start_time if chunk else None,
-                                                chunk.message_end_time if chunk else None)
+                        pending_lost = LostData(key, pos, 9 + length, f"corrupted chunk: {e}", None,
+                                                hdr[0] if hdr else None, hdr[1] if hdr else None)
                         report.lost.append(pending_lost)
                         items = []
                     if want_messages:

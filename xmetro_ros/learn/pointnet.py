@@ -49,9 +49,15 @@ class PointNetReg(nn.Module):
         n_out: int = 1,
     ) -> None:
         super().__init__()
+        if not head:
+            raise ValueError("the PointNet head needs at least one hidden layer")
         self.block1 = _mlp([n_features, *block1])
         self.block2 = _mlp([block1[-1], *block2])
-        self.head = _mlp([block1[-1] + block2[-1], *head, n_out], final_relu=False)
+        # First head layer on concat([f1, g]) written as W_l·f1 + W_g·g: the same function, but the global part
+        # is computed once per set instead of once per point (the 1088-wide concat is never materialised).
+        self.head_local = nn.Linear(block1[-1], head[0])
+        self.head_global = nn.Linear(block2[-1], head[0], bias=False)
+        self.head = _mlp([head[0], *head[1:], n_out], final_relu=False)
         self.register_buffer("x_mean", torch.zeros(n_features))
         self.register_buffer("x_std", torch.ones(n_features))
         self.register_buffer("y_scale", torch.ones(n_out))
@@ -59,8 +65,8 @@ class PointNetReg(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         z = (x - self.x_mean) / self.x_std
         f1 = self.block1(z)
-        g = self.block2(f1).amax(dim=1, keepdim=True)  # global feature of the set
-        h = torch.cat([f1, g.expand(-1, f1.shape[1], -1)], dim=-1)
+        g = self.block2(f1).amax(dim=1, keepdim=True)  # (B, 1, G): global feature of each set
+        h = torch.relu(self.head_local(f1) + self.head_global(g))
         return self.head(h) * self.y_scale
 
 

@@ -198,8 +198,8 @@ def export_model_set(
 ) -> Path:
     """Write ``out_dir/card.json`` and one ONNX file per model; return ``out_dir``.
 
-    The models must cover x, y and z exactly once. X_train gives the domain (min/max with a 5 % margin) and a
-    16-row background for SHAP. check_X: rows on which ONNX Runtime must reproduce the framework within 1e-5 mm
+    The models must cover x, y and z exactly once. X_train gives the domain (training min/max; suggested margin
+    5 % of the range) and a 16-row background for SHAP. check_X: rows on which ONNX Runtime must reproduce the framework within 1e-5 mm
     (the max difference is stored in the card; a larger one raises RuntimeError).
     """
     out = Path(out_dir)
@@ -224,9 +224,8 @@ def export_model_set(
         card["global_feature"] = GLOBAL_FEATURE_DOC
     if X_train is not None:
         Xt = np.asarray(X_train, np.float64)
-        lo, hi = Xt.min(0), Xt.max(0)
-        pad = DOMAIN_MARGIN * np.maximum(hi - lo, 1e-9)
-        card["domain"] = {"lo": (lo - pad).tolist(), "hi": (hi + pad).tolist(), "margin": DOMAIN_MARGIN}
+        # Raw training min/max; consumers widen it by ``margin`` × range (the node's domain_margin parameter).
+        card["domain"] = {"lo": Xt.min(0).tolist(), "hi": Xt.max(0).tolist(), "margin": DOMAIN_MARGIN}
         rng = np.random.default_rng(0)
         card["background"] = Xt[rng.choice(len(Xt), min(16, len(Xt)), replace=False)].tolist()
     card.update(card_extra or {})

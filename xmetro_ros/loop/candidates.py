@@ -9,7 +9,7 @@ Two sources:
   ``incidence_angle`` / ``viewing_angle`` (deg, between the nominal normal and the direction to the source /
   camera), ``line_position`` (mm along the laser line), ``scan_position`` (mm along the scan direction),
   ``x``/``y``/``z`` (mm, artifact frame), ``curvature`` (local surface variation λ_min / Σλ of the 16 nearest
-  neighbours), ``density`` (points per mm² from the 8th-neighbour distance), ``profile_identity`` (identity of
+  neighbours, the point itself left out), ``density`` (points per mm² from the 8th-neighbour distance), ``profile_identity`` (identity of
   each profile: the group itself for profile data, (cloud, line) for organized scans) and ``cloud_identity``.
 A derived candidate that duplicates a field (``line_position`` ↔ ``field_u``) is dropped in favour of the field.
 Candidates equivalent to a feature the model already has are flagged ``in_model`` (reported as controls, never
@@ -68,11 +68,14 @@ def _local_shape(points: np.ndarray, group: np.ndarray) -> tuple[np.ndarray, np.
     for g in np.unique(group):
         idx = np.flatnonzero(group == g)
         p = points[idx]
-        k = min(16, len(p))
-        if k < 4:
+        k = min(17, len(p))
+        if k < 5:
             continue
         tree = cKDTree(p)
         dist, nn = tree.query(p, k=k)
+        # Leave the point itself out: its own noise must not enter its own candidate value.
+        dist, nn = dist[:, 1:], nn[:, 1:]
+        k -= 1
         nb = p[nn] - p[nn].mean(axis=1, keepdims=True)
         cov = np.einsum("nki,nkj->nij", nb, nb) / k
         ev = np.linalg.eigvalsh(cov)

@@ -127,7 +127,7 @@ def from_atc5(path: Path, artifact: Artifact, fit_center: bool) -> LoopData:
         rng_.append(np.hypot(xz[:, 0], xz[:, 1]))
         grp.append(np.full(len(pb), i, dtype=np.int64))
         order.append(np.argsort(np.argsort(xz[:, 0])))
-        names.append(f"p{getattr(pr, 'profile_id', i + 1)}")
+        names.append(str(getattr(pr, "id", f"p{i + 1}")))
     P = np.concatenate(pts)
     E, art_used = _errors(P, artifact, fit_center)
     Lc = np.concatenate(L)
@@ -173,6 +173,7 @@ def load_inputs(paths: list[str | Path], artifact_spec: str | None) -> LoopData:
     if len(kinds) > 1:
         raise LoopInputError(f"inputs of different kinds {sorted(kinds)}: run the loop once per kind")
     kind = kinds.pop()
+    from ..measured import MeasuredDataError
     if kind != "bag" and art is None:
         raise LoopInputError("measured inputs need --artifact (e.g. sphere:radius=50,center=fit)")
     parts = []
@@ -187,6 +188,6 @@ def load_inputs(paths: list[str | Path], artifact_spec: str | None) -> LoopData:
                 parts.append(from_nist(Path(p), art, fit))
             else:
                 parts.append(from_atc5(Path(p), art, fit))
-        except (OSError, UnicodeDecodeError) as e:
+        except (OSError, UnicodeDecodeError, MeasuredDataError) as e:
             raise LoopInputError(f"cannot read {p}: {e}") from e
     return LoopData.concat(parts)

@@ -1,8 +1,8 @@
 """The loop's model of the current feature set: a fast point-wise family retrained on the training part of the
 input, or a given model directory (``ModelSet``). Errors in mm, features in study units.
 
-The retrained family is CatBoost with LEARN's conventions (one regressor per axis on µm targets), so that LEARN's
-ONNX exporter turns the augmented model into a model set the node loads.
+The retrained family is CatBoost fitted by LEARN's ``fit_model`` (one regressor per axis), so that LEARN's
+``export_model_set`` turns the augmented model into a model set the node loads.
 """
 
 from __future__ import annotations
@@ -15,15 +15,14 @@ import numpy as np
 __all__ = ["AxisModel", "fit_family", "GivenModel", "LOOP_FAMILIES"]
 
 LOOP_FAMILIES = ("catboost",)
-TARGET_SCALE = 1000.0  # mm → µm, as LEARN's families (xmetro_ros.learn.families.TARGET_SCALE)
 
 
 @dataclass
 class AxisModel:
-    """One fitted regressor per axis (x, y, z) on µm targets; ``predict`` returns mm."""
+    """One LEARN ``FittedModel`` per axis (x, y, z); ``predict`` returns (M, 3) mm."""
 
     family: str
-    estimators: list[Any]
+    models: list[Any]
     feature_names: list[str]
     params: dict = field(default_factory=dict)
 
@@ -31,30 +30,26 @@ class AxisModel:
         X = np.asarray(X, dtype=np.float32)
         if X.ndim != 2 or X.shape[1] != len(self.feature_names):
             raise ValueError(f"X must be (M, {len(self.feature_names)}), got {X.shape}")
-        return np.stack([e.predict(X) for e in self.estimators], axis=1) / TARGET_SCALE
+        return np.concatenate([m.predict(X) for m in self.models], axis=1)
 
 
 def fit_family(
     family: str, X: np.ndarray, y: np.ndarray, feature_names: list[str], *, seed: int = 0, iterations: int = 300,
     depth: int = 6, learning_rate: float = 0.1, threads: int = 2,
 ) -> AxisModel:
-    """Fit ``family`` per axis on X (M, F) → y (M, 3) mm. Only CatBoost is offered (fast, exportable)."""
+    """Fit ``family`` per axis with LEARN's ``fit_model`` (fixed hyper-parameters, no search) on X (M, F) → y (M, 3)
+    mm. Only CatBoost is offered here (fast, exported by LEARN's ONNX exporter)."""
+    from ..learn.train import fit_model
+
     if family not in LOOP_FAMILIES:
         raise ValueError(f"loop model family {family!r} is not supported; choose one of {LOOP_FAMILIES}")
     X = np.asarray(X, dtype=np.float32)
     y = np.asarray(y, dtype=float)
     if len(X) < 10:
         raise ValueError(f"too few training points to fit the model: {len(X)}")
-    from catboost import CatBoostRegressor
-
-    params = {"iterations": iterations, "depth": depth, "learning_rate": learning_rate, "loss_function": "RMSE"}
-    ests = []
-    for a in range(3):
-        est = CatBoostRegressor(random_seed=seed, verbose=0, thread_count=threads, allow_writing_files=False,
-                                **params)
-        est.fit(X, y[:, a] * TARGET_SCALE)
-        ests.append(est)
-    return AxisModel(family, ests, list(feature_names), params)
+    params = {"iterations": iterations, "depth": depth, "learning_rate": learning_rate}
+    models = [fit_model(family, X, y[:, a], seed=seed, axes=(a,), params=params, threads=threads) for a in range(3)]
+    return AxisModel(family, models, list(feature_names), params)
 
 
 @dataclass

@@ -67,6 +67,8 @@ class LoopResult:
     added_features: list[str]
     offsets: list[str]
     plots: list[dict]  # {"iteration", "variable", "x", "before", "after"} arrays on the eval set (for report.py)
+    X: np.ndarray | None = None  # final feature matrix (all points)
+    train_mask: np.ndarray | None = None
 
 
 def split_roles(groups: np.ndarray, fractions: tuple[float, float, float], seed: int, need_train: bool) -> np.ndarray:
@@ -131,16 +133,16 @@ def error_summary(errors: np.ndarray, normals: np.ndarray) -> dict:
 
 
 def _select(scores, info: dict[str, CandidateInfo], correction: str):
-    for s in scores:
-        if not s.significant or s.in_model:
-            continue
-        kind = info[s.name].kind
-        if correction == "feature" and kind == "identity":
-            continue
-        if correction == "offset" and kind != "identity":
-            continue
-        return s
-    return None
+    """The effect to add: the best significant continuous candidate (held out by whole clouds/profiles, so it
+    generalises to unseen ones); only when none is significant, the best significant identity candidate. Identity
+    candidates are scored inside their own groups, which lets them mimic any smooth within-group effect (drift,
+    distortion) — so they come second, as the loop's last resort (per-profile / per-pass offsets)."""
+    ok = [s for s in scores if s.significant and not s.in_model]
+    cont = [s for s in ok if info[s.name].kind != "identity" and correction != "offset"]
+    ident = [s for s in ok if info[s.name].kind == "identity" and correction != "feature"]
+    if cont:
+        return max(cont, key=lambda s: s.score)
+    return max(ident, key=lambda s: s.score, default=None)
 
 
 def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | None = None) -> LoopResult:
@@ -266,4 +268,4 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
     report["after"] = metrics(E[C], final_pred[C], Nrm[C])
     report["iterations"] = iterations
     report["final_features"] = feat_names
-    return LoopResult(report, model if (given is None and added) else None, feat_names, added, offsets, plots)
+    return LoopResult(report, model if (given is None and added) else None, feat_names, added, offsets, plots, X, A)

@@ -40,7 +40,7 @@ class TraceConfig:
     shrink: float = 20.0
     n_perm: int = 199
     alpha: float = 0.01
-    min_effect: float = 0.03
+    min_effect: float = 0.05
     block_size: int = 24
     max_points: int = 40000
     seed: int = 0

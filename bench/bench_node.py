@@ -1,0 +1,268 @@
+"""xmetro_node performance, side by side in one run; writes bench/results/node.json (quoted in docs/node.md).
+
+1. In-process per-scan processing (``XmetroCore.judge``: decode → outlier removal + normals → features → ONNX
+   inference → flags → verdict → encode ``~/deviations`` and ``~/corrected``) on a simulated organized sphere scan
+   of ~180,000 valid points, the same points unorganized, and a ~16,000-point scan; median of ``--reps`` runs,
+   reported also as a ratio to open3d's KD-tree normal estimation alone (``estimate_normals``, hybrid radius 1 mm /
+   30 nn) on the same valid points measured in between (goal: 180k organized ≤ 100 ms and ratio ≤ 0.3;
+   unorganized ≤ 400 ms). Threads: ONNX Runtime 2, OMP / OpenBLAS 2 (set before numpy loads).
+2. Between processes over DDS: ``xmetro_node`` started as a child process (``NodeProcess``, config/xmetro.yaml,
+   reliable QoS), 180k-point scans published at 2 Hz for ``--duration`` s (default 30; ``--long`` = 600): latency
+   publish → ``~/deviations`` received (p50 / p99, goal p99 ≤ 250 ms), scans sent vs outputs received (goal: zero
+   drops), and the node's resident set size sampled each second (goal ≤ 500 MB, growth < 5 % between the first and
+   the last quarter of the run, MALLOC_ARENA_MAX=2).
+3. Services on the same node: ``~/explain`` for 1,000 points, all features, 3 axes (goal ≤ 2 s) and
+   ``~/recommend_settings`` on a ~20,000-point region, 27 settings × 27 orientations (goal ≤ 3 s), each the median
+   of 3 calls measured from the client (DDS round trip included).
+
+    python bench/bench_node.py [--reps 9] [--duration 30] [--long] [--skip-dds] [--model DIR]
+"""
+
+from __future__ import annotations
+
+import os
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "2")
+os.environ.setdefault("MALLOC_ARENA_MAX", "2")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import sys  # noqa: E402
+import threading  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+OUT = ROOT / "bench" / "results" / "node.json"
+
+from xmetro_ros.artifacts import Sphere  # noqa: E402
+from xmetro_ros.scanner import ScanSettings  # noqa: E402
+
+BIG = (Sphere(27.5, np.zeros(3)), ScanSettings(16.0, 5.0, 0.5))     # ~180k valid points (study max: 180k)
+SMALL = (Sphere(17.5, np.zeros(3)), ScanSettings(8.0, 3.0, 0.5))    # ~16k valid points (study min: 16k)
+
+
+def _sim(spec, stamp_ns=0, seed=0):
+    from xmetro_ros.sim import simulate_scan
+
+    return simulate_scan(spec[0], spec[1], seed=seed, stamp_ns=stamp_ns)
+
+
+def _ms(a) -> dict:
+    a = np.asarray(a, float) * 1e3
+    return {"median_ms": round(float(np.median(a)), 2), "p90_ms": round(float(np.percentile(a, 90)), 2),
+            "min_ms": round(float(a.min()), 2), "n": int(len(a))}
+
+
+def _o3d_normals_s(points_mm: np.ndarray) -> float:
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_mm))
+    t = time.perf_counter()
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=1.0, max_nn=30))
+    return time.perf_counter() - t
+
+
+def in_process(reps: int, model_dir: str) -> dict:
+    from rclpy.node import Node  # noqa: F401 - rclpy loaded like in the node
+
+    from xmetro_ros.node import XmetroCore
+    from xmetro_ros.node_params import PARAMS
+    from xmetro_ros.ros_convert import scan_to_cloud, settings_to_msg
+    from xmetro_ros.scan import Scan
+
+    values = {p.name: p.default for p in PARAMS}
+    values["model_dir"] = model_dir
+    core = XmetroCore(values)
+    if core.model is None:
+        raise SystemExit(f"bench_node: {core.degraded}")
+    out: dict = {"model_id": core.model_id}
+    cases = {}
+    big = _sim(BIG, stamp_ns=10**9)
+    pts, fields, _ = big.flat()
+    unorg = Scan(points=pts, settings=big.settings, pose=big.pose, scanner_id=big.scanner_id, fields=fields,
+                 stamp_ns=10**9)
+    cases["organized_180k"] = big
+    cases["unorganized_180k"] = unorg
+    cases["organized_16k"] = _sim(SMALL, stamp_ns=10**9)
+    core.add_settings(settings_to_msg(big.settings, big.pose, "artifact", 1, big.scanner_id))
+    for name, scan in cases.items():
+        msg = scan_to_cloud(scan)
+        judge, o3d = [], []
+        for i in range(reps + 1):
+            t = time.perf_counter()
+            res = core.judge(msg)
+            dt = time.perf_counter() - t
+            assert res.deviations is not None, res.quality.message
+            o3d_t = _o3d_normals_s(scan.flat()[0])
+            if i:  # first run = warm-up
+                judge.append(dt)
+                o3d.append(o3d_t)
+        ratio = float(np.median(judge) / np.median(o3d))
+        cases[name] = {"valid_points": int(scan.n_valid), "cloud_points": int(np.prod(scan.shape)),
+                       "judge": _ms(judge), "open3d_normals": _ms(o3d), "ratio_to_open3d_normals": round(ratio, 3),
+                       "verdict": int(res.quality.verdict)}
+        print(f"{name}: judge {cases[name]['judge']['median_ms']} ms, open3d normals "
+              f"{cases[name]['open3d_normals']['median_ms']} ms, ratio {ratio:.3f}", flush=True)
+    out["cases"] = cases
+    return out
+
+
+def _rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def over_dds(duration: float, model_dir: str) -> dict:
+    from rclpy.node import Node
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+
+    from xmetro_ros.msg import ScannerSettings, ScanQuality
+    from xmetro_ros.ros_convert import ns_to_stamp, scan_to_cloud, settings_to_msg
+    from xmetro_ros.ros_util import NodeProcess, NodeSpinner, call_service, wait_for
+    from xmetro_ros.srv import Explain, RecommendSettings
+
+    proc = NodeProcess(params_file=str(ROOT / "config" / "xmetro.yaml"),
+                       params={"explain_max_points": 1000, "model_dir": model_dir})
+    proc.start(timeout=120)
+    res: dict = {}
+    try:
+        sp = NodeSpinner(lambda ctx: Node("xmetro_bench", context=ctx))
+        node = sp.node
+        rel = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
+        pub = node.create_publisher(PointCloud2, "scan", rel)
+        pub_s = node.create_publisher(ScannerSettings, "scanner_settings", QoSProfile(
+            history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        sent: dict[int, float] = {}
+        got: dict[int, float] = {}
+        verdicts: list[int] = []
+        lock = threading.Lock()
+
+        def on_dev(msg: PointCloud2) -> None:
+            t = time.monotonic()
+            k = int(msg.header.stamp.sec) * 10**9 + int(msg.header.stamp.nanosec)
+            with lock:
+                got[k] = t
+
+        def on_q(msg: ScanQuality) -> None:
+            verdicts.append(int(msg.verdict))
+
+        subs = [node.create_subscription(PointCloud2, "/xmetro_node/deviations", on_dev, rel),  # noqa: F841
+                node.create_subscription(ScanQuality, "/xmetro_node/quality", on_q, rel)]
+        assert wait_for(lambda: pub.get_subscription_count() > 0 and subs[0].get_publisher_count() > 0, 60)
+        scan = _sim(BIG, stamp_ns=10**9)
+        pub_s.publish(settings_to_msg(scan.settings, scan.pose, "artifact", 10**9 - 1, scan.scanner_id))
+        msg = scan_to_cloud(scan)
+        n_scans = int(duration * 2)
+        rss: list[tuple[float, float]] = []
+        t_start = time.monotonic()
+        # warm-up scan (not counted)
+        msg.header.stamp = ns_to_stamp(10**9)
+        pub.publish(msg)
+        wait_for(lambda: 10**9 in got, 60)
+        for i in range(n_scans):
+            target = t_start + 1.0 + i * 0.5
+            while time.monotonic() < target:
+                time.sleep(0.002)
+            k = 2 * 10**9 + i * 500_000_000
+            msg.header.stamp = ns_to_stamp(k)
+            sent[k] = time.monotonic()
+            pub.publish(msg)
+            if i % 2 == 0:
+                rss.append((time.monotonic() - t_start, _rss_mb(proc.pid)))
+        wait_for(lambda: all(k in got for k in sent), 30)
+        lat = [got[k] - sent[k] for k in sent if k in got]
+        lat_ms = np.asarray(lat) * 1e3
+        r = np.array([m for _, m in rss])
+        q = max(1, len(r) // 4)
+        res["stream"] = {
+            "rate_hz": 2.0, "duration_s": duration, "scans_sent": len(sent), "deviations_received": len(lat),
+            "drops": len(sent) - len(lat), "qos": "reliable",
+            "latency_p50_ms": round(float(np.percentile(lat_ms, 50)), 1) if len(lat) else None,
+            "latency_p99_ms": round(float(np.percentile(lat_ms, 99)), 1) if len(lat) else None,
+            "latency_max_ms": round(float(lat_ms.max()), 1) if len(lat) else None,
+            "rss_mb_first_quarter": round(float(r[:q].mean()), 1),
+            "rss_mb_last_quarter": round(float(r[-q:].mean()), 1),
+            "rss_mb_max": round(float(r.max()), 1),
+            "rss_growth_fraction": round(float(r[-q:].mean() / r[:q].mean() - 1.0), 4),
+            "verdicts": {str(v): verdicts.count(v) for v in sorted(set(verdicts))},
+        }
+        print(f"stream: {res['stream']}", flush=True)
+
+        # services on the last judged scan
+        expl = node.create_client(Explain, "/xmetro_node/explain")
+        reco = node.create_client(RecommendSettings, "/xmetro_node/recommend_settings")
+        req = Explain.Request()
+        req.region_radius = 0.0
+        req.max_points = 1000
+        times, ok = [], []
+        for _ in range(3):
+            t = time.monotonic()
+            r1 = call_service(expl, req, timeout=120)
+            times.append(time.monotonic() - t)
+            ok.append(bool(r1.success) and len(r1.point_indices) == 1000 and len(r1.axis_names) == 3)
+        res["explain_1000_points_3_axes"] = {**_ms(times), "success": all(ok), "features": len(r1.feature_names),
+                                            "message": r1.message}
+        print(f"explain: {res['explain_1000_points_3_axes']}", flush=True)
+        pts = scan.flat()[0]
+        z_top = float(np.nanmax(pts[:, 2]))
+        d = np.linalg.norm(pts - [0, 0, z_top], axis=1)
+        radius_mm = float(np.sort(d)[20_000])
+        req = RecommendSettings.Request()
+        req.region_center.z = z_top * 1e-3
+        req.region_radius = radius_mm * 1e-3
+        times, ok = [], []
+        for _ in range(3):
+            t = time.monotonic()
+            r2 = call_service(reco, req, timeout=120)
+            times.append(time.monotonic() - t)
+            ok.append(bool(r2.success))
+        res["recommend_20k_region"] = {**_ms(times), "success": all(ok), "message": r2.message,
+                                       "region_radius_mm": round(radius_mm, 2),
+                                       "p95_before_um": round(r2.p95_abs_error_before * 1e6, 2),
+                                       "p95_after_um": round(r2.p95_abs_error_after * 1e6, 2)}
+        print(f"recommend: {res['recommend_20k_region']}", flush=True)
+        sp.close()
+    finally:
+        code = proc.stop()
+        res["node_exit_code"] = code
+    return res
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--reps", type=int, default=9)
+    ap.add_argument("--duration", type=float, default=30.0)
+    ap.add_argument("--long", action="store_true", help="10-minute stream (memory steadiness)")
+    ap.add_argument("--skip-dds", action="store_true")
+    ap.add_argument("--model", default="", help="model set directory (default: the shipped default model)")
+    args = ap.parse_args(argv)
+    from xmetro_ros.ros_env import apply_ros_env
+
+    apply_ros_env()
+    result = {"machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
+                          "threads": os.environ.get("OMP_NUM_THREADS")},
+              "goals": {"organized_180k_median_ms": 100, "ratio_to_open3d_normals": 0.3,
+                        "unorganized_180k_median_ms": 400, "stream_p99_ms": 250, "explain_s": 2.0,
+                        "recommend_s": 3.0, "rss_mb": 500, "rss_growth_fraction": 0.05}}
+    result["in_process"] = in_process(args.reps, args.model)
+    if not args.skip_dds:
+        result["dds"] = over_dds(600.0 if args.long else args.duration, args.model)
+    OUT.parent.mkdir(parents=True, exist_ok=True)
+    OUT.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"wrote {OUT}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,135 @@
+"""Replay throughput into a consumer → bench/results/replay.json.
+
+A synthetic bag (N scans of P points: x, y, z, intensity float32, with a ScannerSettings before each) is replayed
+by ``xmetro_ros.replay.replay_bag`` into a minimal consumer node standing in for xmetro_node: it answers each scan
+with a ScanQuality (header copied) on ``/xmetro_node/quality`` and does no processing, so the numbers are those of
+the replay machinery itself (bag reading, DDS publishing, settings acknowledgement, quality handshake):
+
+- ``fast``: each scan waits for the previous scan's quality (the no-drop mode);
+- ``rate``: original timing scaled by a large rate (no handshake; the consumer's queue may drop — counted).
+
+Run: ``python bench/bench_replay.py [--scans 30] [--points 100000]`` (inside tools/netns_run when root).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from xmetro_ros.ros_env import apply_ros_env  # noqa: E402
+
+
+def make_bag(path: Path, n_scans: int, n_points: int, seed: int = 0) -> int:
+    from std_msgs.msg import Header
+
+    from xmetro_ros.bag.writer import BagWriter
+    from xmetro_ros.cloud import create_cloud_from_arrays
+    from xmetro_ros.geometry import HeadPose
+    from xmetro_ros.ros_convert import ns_to_stamp, settings_to_msg
+    from xmetro_ros.scanner import ScanSettings
+
+    rng = np.random.default_rng(seed)
+    t0 = 1_735_689_600_000_000_000
+    with BagWriter(path) as w:
+        w.add_topic("/scan", "sensor_msgs/msg/PointCloud2")
+        w.add_topic("/scanner_settings", "xmetro_ros/msg/ScannerSettings")
+        for i in range(n_scans):
+            stamp = t0 + i * 100_000_000
+            s = settings_to_msg(ScanSettings(10.0, 4.0, 0.5), HeadPose.looking_down(90.0), "artifact", stamp - 1000,
+                                "xm-ls90")
+            w.write("/scanner_settings", s, stamp - 1000)
+            pts = rng.normal(size=(n_points, 3)).astype(np.float32) * 0.02
+            arrays = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2],
+                      "intensity": rng.random(n_points).astype(np.float32)}
+            w.write("/scan", create_cloud_from_arrays(Header(stamp=ns_to_stamp(stamp), frame_id="artifact"), arrays),
+                    stamp)
+    return path.stat().st_size
+
+
+def consumer_factory(ctx):
+    from rclpy.node import Node
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+
+    from xmetro_ros.msg import ScannerSettings, ScanQuality
+
+    node = Node("xmetro_node", context=ctx)
+    qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
+    pub = node.create_publisher(ScanQuality, "~/quality", QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+    node.received = 0
+
+    def on_scan(msg: PointCloud2) -> None:
+        node.received += 1
+        q = ScanQuality()
+        q.header = msg.header
+        q.points_received = msg.width * msg.height
+        pub.publish(q)
+
+    node.create_subscription(ScannerSettings, "scanner_settings", lambda m: None, qos)
+    node.create_subscription(PointCloud2, "scan", on_scan, qos)
+    return node
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scans", type=int, default=30)
+    ap.add_argument("--points", type=int, default=100_000)
+    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "replay.json")
+    args = ap.parse_args(argv)
+    apply_ros_env()
+    from xmetro_ros.replay import replay_bag
+    from xmetro_ros.ros_util import NodeSpinner
+
+    machine = {"python": platform.python_version(), "cpus": os.cpu_count(), "platform": platform.platform()}
+    results = {"machine": machine,
+               "scans": args.scans, "points_per_scan": args.points, "runs": {}}
+    with tempfile.TemporaryDirectory() as tmp:
+        bag = Path(tmp) / "bench.mcap"
+        size = make_bag(bag, args.scans, args.points)
+        results["bag_bytes"] = size
+        for mode, kw in (("fast", {"fast": True}), ("rate", {"rate": 1000.0})):
+            with NodeSpinner(consumer_factory) as sp:
+                res = replay_bag(bag, discovery_timeout=30.0, answer_timeout=30.0, **kw)
+                received = sp.node.received
+            # Throughput from the first send to the last answer (set-up / discovery excluded).
+            wall = res.wall_s
+            results["runs"][mode] = {
+                "wall_s_incl_discovery": round(wall, 3),
+                "scans_sent": res.scans_sent,
+                "scans_received_by_consumer": received,
+                "qualities_received": res.answered,
+                "bytes_sent": res.bytes_sent,
+            }
+            print(f"{mode}: {res.scans_sent} scans, {received} received, {res.answered} answered, {wall:.2f} s")
+        # Time without discovery: a second fast replay measured around the send loop only.
+        with NodeSpinner(consumer_factory) as sp:
+            t_log: list[float] = []
+            res = replay_bag(bag, fast=True, log=lambda s: t_log.append(time.monotonic()))
+        if len(t_log) >= 2:
+            dt = t_log[-1] - t_log[0]
+            n = len(t_log) - 1
+            results["runs"]["fast_steady"] = {
+                "scans_per_s": round(n / dt, 2),
+                "MB_per_s": round(res.bytes_sent / args.scans * n / dt / 1e6, 2),
+                "ms_per_scan": round(dt / n * 1e3, 2),
+            }
+            print(f"fast steady state: {n / dt:.1f} scans/s, {res.bytes_sent / args.scans * n / dt / 1e6:.1f} MB/s")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(results, indent=1) + "\n")
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

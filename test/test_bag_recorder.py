@@ -1,0 +1,124 @@
+"""`xmetro record` as a real process: discovery of all topics, SIGINT → complete bag, SIGKILL → chunks readable."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Header, String
+
+from xmetro_ros.bag.reader import BagReader
+from xmetro_ros.cloud import create_cloud_from_arrays
+from xmetro_ros.msg import ScannerSettings
+from xmetro_ros.ros_env import ros_env
+from xmetro_ros.ros_util import NodeSpinner, wait_for
+
+TIMEOUT = 30.0
+N = 15
+
+
+class _Proc:
+    """The recorder process with its stdout collected line by line in a thread."""
+
+    def __init__(self, args: list[str]) -> None:
+        self.p = subprocess.Popen([sys.executable, "-m", "xmetro_ros.bag.cli", "record", *args], env=ros_env(),
+                                  stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self.lines: list[str] = []
+        self._t = threading.Thread(target=self._read, daemon=True)
+        self._t.start()
+
+    def _read(self) -> None:
+        for line in self.p.stdout:
+            self.lines.append(line.rstrip("\n"))
+
+    def saw(self, text: str) -> bool:
+        return any(text in line for line in list(self.lines))
+
+    def progress(self) -> dict[str, int]:
+        last = [line for line in list(self.lines) if line.startswith("progress")]
+        if not last:
+            return {}
+        return {k: int(v) for k, v in (kv.split("=") for kv in last[-1].split()[1:])}
+
+    def finish(self, timeout: float = TIMEOUT) -> str:
+        self.p.wait(timeout=timeout)
+        self._t.join(timeout=5)
+        return "\n".join(self.lines)
+
+    def kill(self) -> None:
+        if self.p.poll() is None:
+            self.p.kill()
+            self.p.wait(timeout=10)
+
+
+def _publish_all(topics: dict[str, type], proc: _Proc) -> dict[str, list]:
+    """Wait for the recorder to subscribe to every topic, publish N messages on each, wait until recorded."""
+    sent: dict[str, list] = {t: [] for t in topics}
+    qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    with NodeSpinner(lambda ctx: rclpy.create_node("bag_test_pub", context=ctx)) as sp:
+        pubs = {t: sp.node.create_publisher(cls, t, qos) for t, cls in topics.items()}
+        assert wait_for(lambda: all(proc.saw(f"subscribed {t} ") for t in topics), TIMEOUT), proc.lines
+        assert wait_for(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), TIMEOUT)
+        for i in range(N):
+            for t, cls in topics.items():
+                if cls is String:
+                    m = String(data=f"msg {i}")
+                elif cls is ScannerSettings:
+                    m = ScannerSettings(lateral_density=1000.0 + i, exposure_time=0.001)
+                else:
+                    xyz = {k: np.full(8, i, np.float32) for k in "xyz"}
+                    m = create_cloud_from_arrays(Header(frame_id="artifact"), xyz, height=1, width=8)
+                pubs[t].publish(m)
+                sent[t].append(m)
+        assert wait_for(lambda: all(proc.progress().get(t, 0) >= N for t in topics), TIMEOUT), proc.lines[-5:]
+    return sent
+
+
+@pytest.mark.timeout(120)
+def test_record_all_topics_stops_cleanly_on_sigint(tmp_path: Path):
+    out = tmp_path / "rec.mcap"
+    proc = _Proc(["-o", str(out), "--discovery-period", "0.2", "--progress", "0.1"])
+    try:
+        topics = {"/rec/chatter": String, "/rec/settings": ScannerSettings, "/rec/cloud": PointCloud2}
+        sent = _publish_all(topics, proc)
+        proc.p.send_signal(signal.SIGINT)
+        text = proc.finish()
+    finally:
+        proc.kill()
+    assert proc.p.returncode == 0, text
+    assert "stopped (SIGINT)" in text
+    r = BagReader(out)
+    got = r.read_all()
+    assert r.report.ok, r.report.describe()  # complete summary: footer written, nothing lost
+    for t, msgs in sent.items():
+        assert [m.msg for m in got if m.topic == t] == msgs
+    assert r.topics()["/rec/cloud"] == "sensor_msgs/msg/PointCloud2"
+    assert "reliability: reliable" in r.offered_qos("/rec/settings")
+    assert r.topic_type_hash("/rec/settings").startswith("RIHS01_")
+
+
+@pytest.mark.timeout(120)
+def test_sigkilled_recorder_leaves_completed_chunks_readable(tmp_path: Path):
+    out = tmp_path / "killed.mcap"
+    # chunk size 1 byte: every message closes its chunk, so each one is on disk once recorded
+    proc = _Proc(["-o", str(out), "--chunk-size", "1", "--discovery-period", "0.2", "--progress", "0.1",
+                  "/k/chatter"])
+    try:
+        sent = _publish_all({"/k/chatter": String}, proc)
+        proc.p.send_signal(signal.SIGKILL)
+        proc.finish()
+    finally:
+        proc.kill()
+    assert proc.p.returncode == -signal.SIGKILL
+    r = BagReader(out)
+    got = [m.msg for m in r.messages()]
+    assert got == sent["/k/chatter"]
+    assert r.report.unfinished_files == [str(out)] and not r.report.lost

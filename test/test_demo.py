@@ -1,0 +1,43 @@
+"""xmetro demo end to end: node as a child process, bags/demo.mcap replayed, services called, report written."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+from xmetro_ros.demo import run_demo
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_demo_end_to_end(tmp_path):
+    lines: list[str] = []
+    res = run_demo(tmp_path / "demo", bag=ROOT / "bags" / "demo.mcap", timeout=90.0, log=lines.append)
+    assert res.ok, res.errors
+    assert not res.replay.losses and res.replay.complete and res.replay.scans_sent == 4
+    assert len(res.outputs) == 4 and all(o.deviations is not None for o in res.outputs)
+    # The worst region is the largest predicted deviation of the scan with the largest p95.
+    assert res.worst is not None and res.worst["max_dev_mm"] > 0
+    ex = res.explain
+    assert len(ex["feature_names"]) == len(ex["mean_abs_shap_um"]) and ex["n_points"] > 0
+    assert ex["axis_names"] == ["x", "y", "z"]
+    assert res.recommend["rows"][1][0] == "recommended settings" and res.recommend["alternatives"]
+    html = res.report.read_text()
+    assert res.report == tmp_path / "demo" / "report.html"
+    # quality table (4 scans), 4 deviation maps + the SHAP chart, embedded as base64 PNG
+    assert len(re.findall(r"data:image/png;base64,iVBORw0KGgo", html)) == 5
+    assert html.count("<span class='v'") == 4
+    for section in ("Per-scan quality", "Deviation maps", "~/explain", "~/recommend_settings"):
+        assert section in html
+    assert "failed" not in html
+    # the recording holds inputs and outputs
+    assert (tmp_path / "demo" / "outputs.mcap").stat().st_size > 0
+    assert "xmetro_node ready" in (tmp_path / "demo" / "node.log").read_text()
+
+
+def test_demo_reports_missing_bag(tmp_path, capsys):
+    from xmetro_ros.cli import main
+
+    assert main(["demo", "--out", str(tmp_path), "--bag", str(tmp_path / "nope.mcap"), "--timeout", "5"]) == 1
+    err = capsys.readouterr()
+    assert "does not exist" in err.out + err.err

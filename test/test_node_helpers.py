@@ -1,0 +1,170 @@
+"""Helpers of the node tests: simulated scans as clouds, a tester node that publishes into and listens to
+xmetro_node, and hand-made malformed clouds."""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2, PointField
+
+from xmetro_ros.artifacts import Sphere
+from xmetro_ros.geometry import HeadPose
+from xmetro_ros.msg import ScannerSettings, ScanQuality
+from xmetro_ros.ros_convert import ns_to_stamp, scan_to_cloud, settings_to_msg
+from xmetro_ros.ros_util import wait_for
+from xmetro_ros.scan import Scan
+from xmetro_ros.scanner import ScanSettings
+from xmetro_ros.sim import simulate_scan
+
+SETTINGS = ScanSettings(6.0, 3.0, 0.5)
+TIMEOUT = 30.0
+
+
+def sim_scan(stamp_ns: int, radius: float = 17.5, settings: ScanSettings = SETTINGS, seed: int = 0) -> Scan:
+    return simulate_scan(Sphere(radius, np.zeros(3)), settings, seed=seed, stamp_ns=stamp_ns)
+
+
+def settings_msg(scan: Scan, stamp_ns: int, frame_id: str = "artifact", **si: float) -> ScannerSettings:
+    m = settings_to_msg(scan.settings, scan.pose, frame_id, stamp_ns, scan.scanner_id)
+    for k, v in si.items():
+        setattr(m, k, v)
+    return m
+
+
+def pose_default() -> HeadPose:
+    return HeadPose.looking_down(90.0)
+
+
+def stamp_ns_of(msg: Any) -> int:
+    return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+
+
+def raw_cloud(fields: list[tuple[str, int, int]], point_step: int, n: int, data: bytes | None = None,
+              stamp_ns: int = 0, frame_id: str = "artifact", row_step: int | None = None,
+              height: int = 1, bigendian: bool = False) -> PointCloud2:
+    """A hand-made cloud: fields as (name, offset, datatype)."""
+    m = PointCloud2()
+    m.header.stamp = ns_to_stamp(stamp_ns)
+    m.header.frame_id = frame_id
+    m.height = height
+    m.width = n // height if height else 0
+    m.fields = [PointField(name=nm, offset=o, datatype=dt, count=1) for nm, o, dt in fields]
+    m.point_step = point_step
+    m.row_step = row_step if row_step is not None else point_step * m.width
+    m.is_bigendian = bigendian
+    m.is_dense = False
+    m.data = data if data is not None else bytes(point_step * n)
+    return m
+
+
+def bigendian_copy(msg: PointCloud2) -> PointCloud2:
+    """The same cloud with every field stored big-endian (float32 fields only)."""
+    out = PointCloud2()
+    out.header = msg.header
+    out.height, out.width = msg.height, msg.width
+    out.fields = msg.fields
+    out.point_step, out.row_step = msg.point_step, msg.row_step
+    out.is_dense = msg.is_dense
+    out.is_bigendian = True
+    raw = np.frombuffer(bytes(msg.data), dtype=np.uint8).reshape(-1, msg.point_step).copy()
+    for f in msg.fields:
+        assert f.datatype == PointField.FLOAT32
+        raw[:, f.offset:f.offset + 4] = raw[:, f.offset:f.offset + 4][:, ::-1]
+    out.data = raw.tobytes()
+    return out
+
+
+class NodeClient:
+    """Client node: publishes scans / settings to xmetro_node and collects its outputs (thread-safe lists)."""
+
+    def __init__(self, node: Node, target: str = "xmetro_node", best_effort: bool = False) -> None:
+        self.node = node
+        rel = ReliabilityPolicy.BEST_EFFORT if best_effort else ReliabilityPolicy.RELIABLE
+        self.pub_scan = node.create_publisher(PointCloud2, "scan", QoSProfile(
+            history=HistoryPolicy.KEEP_LAST, depth=10, reliability=rel, durability=DurabilityPolicy.VOLATILE))
+        self.pub_settings = node.create_publisher(ScannerSettings, "scanner_settings", QoSProfile(
+            history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        self.lock = threading.Lock()
+        self.quality: list[ScanQuality] = []
+        self.deviations: list[PointCloud2] = []
+        self.corrected: list[PointCloud2] = []
+        self.diagnostics: list[tuple[int, DiagnosticArray]] = []   # (seq, msg)
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
+        self.subs = [
+            node.create_subscription(ScanQuality, f"/{target}/quality", self._add("quality"), qos),
+            node.create_subscription(PointCloud2, f"/{target}/deviations", self._add("deviations"), qos),
+            node.create_subscription(PointCloud2, f"/{target}/corrected", self._add("corrected"), qos),
+            node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, qos),
+        ]
+        self.target = target
+
+    def _add(self, name: str) -> Any:
+        def cb(msg: Any) -> None:
+            with self.lock:
+                getattr(self, name).append(msg)
+        return cb
+
+    def _on_diag(self, msg: DiagnosticArray) -> None:
+        with self.lock:
+            self.diagnostics.append((len(self.diagnostics), msg))
+
+    def wait_matched(self) -> None:
+        assert wait_for(lambda: self.pub_scan.get_subscription_count() > 0
+                        and self.pub_settings.get_subscription_count() > 0
+                        and all(s.get_publisher_count() > 0 for s in self.subs), TIMEOUT), "xmetro_node not matched"
+
+    def _find(self, lst: str, stamp: int) -> Any:
+        with self.lock:
+            for m in getattr(self, lst):
+                if stamp_ns_of(m) == stamp:
+                    return m
+        return None
+
+    def send(self, msg: PointCloud2, outputs: bool | None = None, resend_every: float | None = None
+             ) -> tuple[ScanQuality, Any, Any]:
+        """Publish a cloud (its stamp must be unique) and wait for its quality (and deviations / corrected unless
+        the verdict is ERROR). ``resend_every`` (s): publish again until the quality comes (best-effort QoS)."""
+        stamp = stamp_ns_of(msg)
+        deadline = time.monotonic() + TIMEOUT
+        while True:
+            self.pub_scan.publish(msg)
+            if wait_for(lambda: self._find("quality", stamp) is not None,
+                        resend_every or TIMEOUT) or time.monotonic() > deadline:
+                break
+        assert self._find("quality", stamp) is not None, f"no quality for {stamp}"
+        q = self._find("quality", stamp)
+        if outputs is None:
+            outputs = q.verdict != ScanQuality.VERDICT_ERROR
+        dev = corr = None
+        if outputs:
+            assert wait_for(lambda: self._find("deviations", stamp) is not None
+                            and self._find("corrected", stamp) is not None, TIMEOUT), f"no clouds for {stamp}"
+            dev, corr = self._find("deviations", stamp), self._find("corrected", stamp)
+        return q, dev, corr
+
+    def diag_mark(self) -> int:
+        with self.lock:
+            return len(self.diagnostics)
+
+    def wait_diag_level(self, level: int, since: int, pred: Any = None) -> DiagnosticArray:
+        """Wait for a /diagnostics message of ``level`` (and ``pred(status)``) received after mark ``since``."""
+        def find() -> Any:
+            with self.lock:
+                for _seq, m in self.diagnostics[since:]:
+                    if m.status and m.status[0].level == bytes([level]) and (pred is None or pred(m.status[0])):
+                        return m
+            return None
+        assert wait_for(lambda: find() is not None, TIMEOUT), f"no /diagnostics with level {level}"
+        return find()
+
+
+def cloud_of(scan: Scan) -> PointCloud2:
+    return scan_to_cloud(scan)

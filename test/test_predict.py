@@ -1,0 +1,118 @@
+"""xmetro predict: the live node's processing offline — identical outputs field by field (live node in this process,
+same default parameters and model), bags without settings, bad model, and the comparison itself can fail."""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from xmetro_ros.predict import (
+    EXACT,
+    PredictError,
+    compare_outputs,
+    deviation_arrays,
+    predict_bag,
+    read_outputs,
+)
+from xmetro_ros.replay import replay_bag
+from xmetro_ros.ros_util import NodeSpinner
+
+ROOT = Path(__file__).resolve().parents[1]
+BAGS = ROOT / "bags"
+TRUCK = ROOT.parent / "shared" / "data" / "bags" / "rosbag2_pointcloud2_truck"
+
+
+@pytest.fixture(scope="module")
+def predicted(tmp_path_factory):
+    out = tmp_path_factory.mktemp("predict") / "pred.mcap"
+    res = predict_bag(BAGS / "demo.mcap", out)
+    return res, out
+
+
+def test_predict_is_identical_to_the_live_node(predicted, tmp_path):
+    from xmetro_ros.node import XmetroNode
+
+    res, out = predicted
+    rec = tmp_path / "live.mcap"
+    with NodeSpinner(lambda ctx: XmetroNode(context=ctx)):
+        live = replay_bag(BAGS / "demo.mcap", fast=True, record=rec)
+    assert live.complete and live.scans_sent == len(res.outputs) == 4
+    offline, online = read_outputs(out), read_outputs(rec)
+    # Every field of every message, exactly (processing_latency aside: it is a wall-clock time).
+    assert compare_outputs(offline, online, EXACT) == []
+    assert all(o.deviations is not None and o.corrected is not None for o in online)
+
+
+def test_predict_outputs_are_consistent(predicted):
+    res, out = predicted
+    outs = read_outputs(out)
+    assert len(outs) == 4 and res.settings_seen == 4 and not res.notes and not res.losses
+    for o in outs:
+        q = o.quality
+        assert int(q.error_code) == 0 and not q.settings_defaulted and q.model_id == res.model_id
+        pts, dev, flags = deviation_arrays(o.deviations)
+        assert len(pts) == q.points_received == o.deviations.width * o.deviations.height
+        assert int(np.isfinite(pts).all(axis=1).sum()) == q.points_valid
+        assert int(np.count_nonzero(flags)) == q.points_flagged
+        # corrected = measured + predicted deviation where there is a prediction (float32 on the wire)
+        from xmetro_ros.predict import cloud_arrays
+
+        c = cloud_arrays(o.corrected)
+        ok = np.isfinite(dev).all(axis=1)
+        assert ok.any()
+        np.testing.assert_allclose(c["x"][ok] * 1e3, pts[ok, 0] + dev[ok, 0], atol=1e-3)
+        a = np.abs(dev[ok]).mean(axis=0) * 1e-3
+        np.testing.assert_allclose(np.asarray(q.mean_abs_error), a, rtol=1e-4, atol=1e-12)
+
+
+def test_comparison_reports_any_difference(predicted):
+    _res, out = predicted
+    a = read_outputs(out)
+    b = copy.deepcopy(a)
+    assert compare_outputs(a, b) == []
+    data = np.frombuffer(bytes(b[1].deviations.data), dtype=np.uint8).copy()
+    # dx of the first valid point: offset of field "dx" in the point.
+    dx_off = next(f.offset for f in b[1].deviations.fields if f.name == "dx")
+    pts, dev, _ = deviation_arrays(b[1].deviations)
+    j = int(np.flatnonzero(np.isfinite(dev).all(axis=1))[0])
+    k = j * b[1].deviations.point_step + dx_off
+    data[k:k + 4] = np.frombuffer(np.float32(dev[j, 0] * 1e-3 + 1e-6).tobytes(), dtype=np.uint8)
+    b[1].deviations.data = data.tobytes()
+    b[2].quality.verdict = 3
+    diffs = compare_outputs(a, b)
+    assert any("scan 1 deviations.dx" in d for d in diffs), diffs
+    assert any("scan 2 quality.verdict" in d for d in diffs), diffs
+    assert compare_outputs(a, b[:3])[0].startswith("4 scans != 3 scans")
+
+
+def test_predict_truck_bag_defaults_settings(tmp_path):
+    res = predict_bag(TRUCK, tmp_path / "truck.mcap")
+    assert len(res.outputs) == 3 and res.inputs == ["cloud_1", "cloud_2", "cloud_3"]
+    assert all(o.quality.settings_defaulted and int(o.quality.error_code) == 0 for o in res.outputs)
+    assert any("no xmetro_ros/msg/ScannerSettings" in n for n in res.notes)
+    # The defaulted settings are those of the node's parameters (10 pt/mm, 4 profiles/mm, 0.5 ms).
+    s = res.outputs[0].quality.settings
+    assert (s.lateral_density, s.direction_density, s.exposure_time) == (10000.0, 4000.0, 0.0005)
+
+
+def test_predict_refuses_bad_model_and_bad_params(tmp_path):
+    with pytest.raises(PredictError, match="no usable model"):
+        predict_bag(BAGS / "demo.mcap", tmp_path / "a.mcap", model_dir=tmp_path / "nope")
+    with pytest.raises(PredictError, match="unknown node parameter"):
+        predict_bag(BAGS / "demo.mcap", tmp_path / "b.mcap", params={"tolerence": 1})
+    with pytest.raises(PredictError, match="outside"):
+        predict_bag(BAGS / "demo.mcap", tmp_path / "c.mcap", params={"tolerance": 5.0})
+
+
+def test_cli_predict(tmp_path, capsys):
+    from xmetro_ros.cli import main
+
+    out = tmp_path / "p.mcap"
+    assert main(["predict", str(BAGS / "regression.mcap"), "--out", str(out), "--param", "tolerance=0.0002"]) == 0
+    text = capsys.readouterr().out
+    assert "4 scans, 4 settings" in text and out.exists()
+    assert main(["predict", str(BAGS / "regression.mcap"), "--out", str(out)]) == 1  # exists: refused
+    assert "already exists" in capsys.readouterr().err

@@ -1,0 +1,78 @@
+"""Rescan recommendation (ROS-free): search grid, pivot about the region centroid, coverage rule, ranking."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from xmetro_ros.artifacts import Sphere
+from xmetro_ros.geometry import matrix_to_quat
+from xmetro_ros.inference import ModelSet
+from xmetro_ros.recommend import coverage_mask, orientation_grid, recommend, rotation_xyz, subset_context
+from xmetro_ros.scan_handler import HandlerParams, ScanHandler
+from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.sim import simulate_scan
+
+
+@pytest.fixture(scope="module")
+def judged():
+    model = ModelSet.load(os.environ.get("XMETRO_TEST_MODEL_DIR") or None)
+    scanner = ScannerModel.load()
+    scan = simulate_scan(Sphere(17.5, np.zeros(3)), ScanSettings(6.0, 3.0, 0.5), seed=2)
+    res = ScanHandler(model, scanner, HandlerParams()).process(scan)
+    return model, scanner, scan, res
+
+
+def test_orientation_grid():
+    g = orientation_grid(0.2, 3, 1.0, 3)
+    assert len(g) == 27
+    assert sum(np.allclose(r, np.eye(3)) for r in g) == 1
+    assert all(np.allclose(r.T @ r, np.eye(3)) for r in g)
+    assert len(orientation_grid(-1.0, 3, 1.0, 3)) == 3 and len(orientation_grid(0.2, 5, -1.0, 3)) == 25
+    assert len(orientation_grid(0.0, 3, 0.0, 3)) == 1
+    np.testing.assert_allclose(rotation_xyz(0, 0, np.pi / 2) @ [1, 0, 0], [0, 1, 0], atol=1e-12)
+
+
+def test_recommend_region(judged):
+    model, scanner, scan, res = judged
+    pts = np.asarray(res.prepared.points)
+    rows = np.flatnonzero(np.linalg.norm(pts - [0, 0, 17.5], axis=1) < 8.0)
+    kw = dict(max_points=500, max_tilt=0.25, tilt_steps=3, max_turn=1.2, turn_steps=3, min_coverage=0.95)
+    rec = recommend(model, res.context, rows, res.features, scan.pose, scanner, scan.settings, **kw)
+    assert rec.n_region == len(rows) and rec.n_points == 500 and rec.n_orientations == 27 and rec.n_settings == 27
+    assert rec.ranked[0] is rec.best
+    assert [c.score_mm for c in rec.ranked] == sorted(c.score_mm for c in rec.ranked)
+    assert len(rec.ranked) == 27 * rec.n_orientations_kept
+    need = min(0.95, rec.before.coverage)
+    assert all(c.coverage >= need - 1e-12 for c in rec.ranked)
+    # the current settings and orientation are a candidate: the best is at least as good as "before"
+    same = [c for c in rec.ranked if c.settings == scan.settings and np.allclose(c.rotation, np.eye(3))]
+    assert len(same) == 1
+    assert same[0].p95_mm == pytest.approx(rec.before.p95_mm, rel=1e-5)
+    assert rec.best.p95_mm <= same[0].p95_mm
+    # the head pivots about the region centroid: the centroid keeps its head-frame coordinates
+    sub_rows = rows[np.linspace(0, len(rows) - 1, 500).round().astype(int)]
+    centroid = pts[sub_rows].mean(axis=0)
+    for c in rec.ranked[:5]:
+        np.testing.assert_allclose(c.pose.to_head(centroid), scan.pose.to_head(centroid), atol=1e-9)
+        np.testing.assert_allclose(c.quaternion, matrix_to_quat(c.rotation))
+    # deterministic
+    rec2 = recommend(model, res.context, rows, res.features, scan.pose, scanner, scan.settings, **kw)
+    assert rec2.best.p95_mm == rec.best.p95_mm and np.allclose(rec2.best.rotation, rec.best.rotation)
+    # coverage computed from the recomputed geometry
+    sub = subset_context(res.context, sub_rows)
+    cov = coverage_mask(sub.with_pose(rec.best.pose, scanner), 75.0, 75.0)
+    assert cov.mean() == pytest.approx(rec.best.coverage)
+
+
+def test_recommend_refuses(judged):
+    model, scanner, scan, res = judged
+    with pytest.raises(ValueError, match="no processed point"):
+        recommend(model, res.context, np.array([], int), res.features, scan.pose, scanner, scan.settings)
+    # nothing can keep full coverage when only huge tilts are allowed and the region wraps the sphere
+    rows = np.arange(len(res.prepared.points))
+    with pytest.raises(ValueError, match="coverage"):
+        recommend(model, res.context, rows, res.features, scan.pose, scanner, scan.settings, max_points=300,
+                  max_tilt=1.5, tilt_steps=2, max_turn=-1, min_coverage=1.0)

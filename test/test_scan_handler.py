@@ -1,0 +1,131 @@
+"""ScanHandler (the one processing path), the point cap, flags and verdict rules — no DDS."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from xmetro_ros import flags as fl
+from xmetro_ros.artifacts import Sphere
+from xmetro_ros.inference import ModelSet
+from xmetro_ros.scan import Scan
+from xmetro_ros.scan_handler import HandlerParams, ScanError, ScanHandler, cap_points, decimation_index
+from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.sim import simulate_scan
+
+
+@pytest.fixture(scope="module")
+def handler() -> ScanHandler:
+    model = ModelSet.load(os.environ.get("XMETRO_TEST_MODEL_DIR") or None)
+    return ScanHandler(model, ScannerModel.load(), HandlerParams())
+
+
+@pytest.fixture(scope="module")
+def scan() -> Scan:
+    return simulate_scan(Sphere(17.5, np.zeros(3)), ScanSettings(6.0, 3.0, 0.5), seed=1)
+
+
+def test_process_organized_and_unorganized(handler, scan):
+    res = handler.process(scan)
+    n = int(np.prod(scan.shape))
+    assert res.deviations.shape == (n, 3) and res.flags.shape == (n,) and res.flags.dtype == np.uint16
+    valid = scan.valid_mask()
+    assert np.isnan(res.deviations[~valid]).all()
+    assert np.all(res.flags[~valid] & fl.FLAG_INVALID_POINT)
+    assert np.count_nonzero(res.flags & fl.FLAG_INVALID_POINT) >= n - int(valid.sum())
+    # deviations of kept points are the model's prediction on the model's features
+    np.testing.assert_array_equal(res.deviations[res.prepared.index], res.predictions)
+    np.testing.assert_array_equal(res.predictions, handler.model.predict(res.features))
+    assert res.features.dtype == np.float32 and res.features.shape[1] == len(handler.model.feature_names)
+    outl = np.asarray(res.prepared.outlier)
+    assert np.all(res.flags[outl] & fl.FLAG_OUTLIER) and np.isnan(res.deviations[outl]).all()
+    q = res.quality
+    assert q["points_received"] == n and q["points_valid"] == int(valid.sum())
+    assert q["flag_counts"] == fl.flag_counts(res.flags)
+    assert q["usable_fraction"] == pytest.approx(np.count_nonzero(res.flags == 0) / n)
+    assert q["verdict_name"] == fl.VERDICT_NAMES[q["verdict"]]
+    # the same scan unorganized: same points processed (open3d path), one deviation per point
+    pts, fields, idx = scan.flat()
+    flat = Scan(points=pts, settings=scan.settings, pose=scan.pose, scanner_id=scan.scanner_id, fields=fields)
+    r2 = handler.process(flat)
+    assert r2.deviations.shape == (len(pts), 3) and np.isfinite(r2.deviations).any(axis=1).mean() > 0.8
+
+
+def test_flag_thresholds_follow_parameters(handler, scan):
+    base = handler.params
+    try:
+        handler.params = replace(base, tolerance_mm=1e-9)
+        r = handler.process(scan)
+        pred_ok = np.zeros(len(r.flags), bool)
+        pred_ok[r.prepared.index] = np.isfinite(r.predictions).all(axis=1)
+        assert np.array_equal((r.flags & fl.FLAG_OVER_TOLERANCE) > 0, pred_ok)
+        assert r.quality["verdict"] == fl.VERDICT_RESCAN
+        handler.params = replace(base, tolerance_mm=1e9, grazing_incidence_deg=90.0, grazing_view_deg=90.0,
+                                 normal_quality_min=0.0, domain_margin=1e6,
+                                 thresholds=fl.VerdictThresholds(warn_flagged_fraction=1.0))
+        r = handler.process(scan)
+        assert not np.any(r.flags & (fl.FLAG_OVER_TOLERANCE | fl.FLAG_OUT_OF_DOMAIN | fl.FLAG_UNRELIABLE_NORMAL))
+        handler.params = replace(base, normal_quality_min=1.01)
+        r = handler.process(scan)
+        kept = np.zeros(len(r.flags), bool)
+        kept[r.prepared.index] = True
+        assert np.all(r.flags[kept] & fl.FLAG_UNRELIABLE_NORMAL)
+        r = handler.process(scan, settings_defaulted=True)
+        assert r.quality["settings_defaulted"] and r.quality["verdict"] >= fl.VERDICT_WARN
+    finally:
+        handler.params = base
+
+
+def test_domain_and_angle_flags_unit():
+    X = np.array([[0.0, 1.0], [2.0, 1.0], [0.5, -0.2]], np.float32)
+    f = fl.domain_flags(X, np.array([0.0, 0.0]), np.array([1.0, 1.0]), margin=0.1)
+    assert f.tolist() == [0, fl.FLAG_OUT_OF_DOMAIN, fl.FLAG_OUT_OF_DOMAIN]
+    n = np.array([[0, 0, 1.0], [0, 0, 1.0], [1.0, 0, 0]])
+    lv = np.array([[0, 0, 1.0], [np.sin(np.radians(80)), 0, np.cos(np.radians(80))], [0, 0, 1.0]])
+    a = fl.angle_flags(n, lv, lv, 75.0, 85.0)
+    assert a.tolist() == [0, fl.FLAG_GRAZING_INCIDENCE, fl.FLAG_GRAZING_INCIDENCE | fl.FLAG_GRAZING_VIEW]
+
+
+def test_verdict_rules():
+    th = fl.VerdictThresholds(warn_flagged_fraction=0.25, rescan_usable_fraction=0.5,
+                              rescan_over_tolerance_fraction=0.05, min_valid_points=100)
+    assert fl.verdict(1000, 1000, 0, 0, th)[0] == fl.VERDICT_OK
+    assert fl.verdict(1000, 700, 300, 0, th)[0] == fl.VERDICT_WARN
+    assert fl.verdict(1000, 750, 250, 0, th)[0] == fl.VERDICT_OK  # not strictly over
+    assert fl.verdict(1000, 490, 510, 0, th)[0] == fl.VERDICT_RESCAN
+    assert fl.verdict(1000, 900, 100, 60, th)[0] == fl.VERDICT_RESCAN
+    assert fl.verdict(99, 99, 0, 0, th)[0] == fl.VERDICT_RESCAN
+    assert fl.verdict(1000, 1000, 0, 0, th, settings_defaulted=True) == (fl.VERDICT_WARN, "settings defaulted")
+    assert fl.verdict(1000, 1000, 0, 0, th, decimated=True)[0] == fl.VERDICT_WARN
+
+
+def test_errors_and_point_cap(handler, scan):
+    nan = replace(scan, points=np.full_like(scan.points, np.nan))
+    with pytest.raises(ScanError) as e:
+        handler.process(nan)
+    assert e.value.code == "NO_VALID_POINTS"
+    with pytest.raises(ScanError) as e:
+        handler.process(replace(scan, settings=ScanSettings(6.0, 3.0, -1.0)))
+    assert e.value.code == "INVALID_SETTINGS" and "exposure_ms" in str(e.value)
+    with pytest.raises(ScanError) as e:
+        ScanHandler(None, handler.scanner).process(scan)
+    assert e.value.code == "MODEL_UNAVAILABLE"
+    n = int(np.prod(scan.shape))
+    with pytest.raises(ScanError) as e:
+        cap_points(scan, n - 1, "reject")
+    assert e.value.code == "TOO_MANY_POINTS"
+    small, keep = cap_points(scan, n // 3, "decimate")
+    assert len(keep) <= n // 3 and not small.organized and len(small.points) == len(keep)
+    np.testing.assert_array_equal(small.points, scan.points.reshape(-1, 3)[keep])
+    assert cap_points(scan, n, "reject")[1] is None
+    assert decimation_index(10, 3).tolist() == [0, 4, 8]
+    old = handler.params
+    try:
+        handler.params = replace(old, max_points=n // 3, cloud_overflow="decimate")
+        r = handler.process(scan)
+        assert r.quality["decimated"] and r.quality["verdict"] >= fl.VERDICT_WARN and len(r.flags) == len(keep)
+    finally:
+        handler.params = old

@@ -1,0 +1,62 @@
+"""`xmetro loop INPUT... --artifact SPEC --out DIR`: close the loop on measured or recorded data."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+__all__ = ["register", "run"]
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("loop", help="trace the residual of the model to an undeclared effect and add it",
+                              description=__doc__)
+    p.add_argument("inputs", nargs="+", help="MCAP bags, NIST .xyz files/dir, or the AT C5 profile dir")
+    p.add_argument("--artifact", default=None, help="nominal artifact, e.g. sphere:radius=50,center=fit")
+    p.add_argument("--out", required=True, help="output directory (report.json, report.md, plots, model/)")
+    p.add_argument("--model", default=None, help="model dir (ModelSet); default: retrain CatBoost on the input")
+    p.add_argument("--candidates", default=None, help="comma-separated candidate names (default: all)")
+    p.add_argument("--correction", default="auto", choices=["auto", "feature", "offset"])
+    p.add_argument("--max-iter", type=int, default=3)
+    p.add_argument("--n-perm", type=int, default=199)
+    p.add_argument("--alpha", type=float, default=0.01)
+    p.add_argument("--min-effect", type=float, default=0.05)
+    p.add_argument("--iterations", type=int, default=300, help="boosting iterations of the retrained family")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..artifacts import ArtifactSpecError
+    from .data import LoopInputError
+    from .inputs import load_inputs
+    from .model import GivenModel
+    from .report import write_report
+    from .run import LoopConfig, run_loop
+    from .trace import TraceConfig
+
+    try:
+        data = load_inputs(args.inputs, args.artifact)
+        given = None
+        if args.model:
+            from ..inference import ModelSet
+
+            given = GivenModel(ModelSet.load(args.model))
+        cfg = LoopConfig(
+            iterations=args.iterations, max_iter=args.max_iter, correction=args.correction, seed=args.seed,
+            candidates=args.candidates.split(",") if args.candidates else None,
+            trace=TraceConfig(n_perm=args.n_perm, alpha=args.alpha, min_effect=args.min_effect, seed=args.seed),
+        )
+        result = run_loop(data, cfg, given)
+        path = write_report(result, args.out)
+        if result.model is not None:
+            from .export import export_loop_model
+
+            export_loop_model(result, data, Path(args.out) / "model")
+    except (ArtifactSpecError, LoopInputError, ValueError, FileNotFoundError, RuntimeError) as e:
+        print(f"xmetro loop: error: {e}", file=sys.stderr)
+        return 2
+    sel = result.report["selected"]
+    print(f"selected: {sel['name'] if sel else 'none (no significant effect found)'}; report: {path}")
+    return 0

@@ -1,0 +1,84 @@
+"""Targets (the study's eq. 8-15): per-axis error = nominal − measured, mm.
+
+Radial projection onto a sphere, axial onto a cylinder (no error along the axis), orthogonal onto a plane —
+``Artifact.errors``. For an artifact not at its nominal position, ``errors_with_fit`` first fits its position
+with the nominal radius fixed (sphere centre; cylinder axis position with the axis direction fixed; plane offset
+along its normal) and projects onto the fitted artifact.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .artifacts import Artifact, Cylinder, Plane, Sphere
+from .fitting import FitError, fit_circle_2d, fit_cylinder_center, fit_sphere, fit_sphere_center
+
+__all__ = [
+    "FitError",
+    "point_errors",
+    "errors_with_fit",
+    "fit_artifact_position",
+    "fit_sphere",
+    "fit_sphere_center",
+    "fit_circle_2d",
+    "fit_cylinder_center",
+    "MAX_FIT_RMS_FRACTION",
+]
+
+#: A fixed-radius fit whose residual RMS exceeds this fraction of the nominal radius does not describe the data.
+MAX_FIT_RMS_FRACTION = 0.05
+
+
+def _check(points: np.ndarray, artifact: Artifact) -> np.ndarray:
+    if not isinstance(artifact, Artifact):
+        raise TypeError(f"artifact must be a Sphere, Cylinder or Plane, got {type(artifact).__name__}")
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {p.shape}")
+    if len(p) == 0:
+        raise ValueError("no points")
+    if not np.all(np.isfinite(p)):
+        raise ValueError("points contain NaN or inf")
+    return p
+
+
+def point_errors(points: np.ndarray, artifact: Artifact) -> np.ndarray:
+    """(N, 3) errors nominal − measured (mm) of finite points against the artifact as given (eq. 13-15)."""
+    p = _check(points, artifact)
+    return artifact.errors(p)
+
+
+def fit_artifact_position(points: np.ndarray, artifact: Artifact) -> Artifact:
+    """The artifact moved to best fit the points, its size and orientation fixed. FitError when the fit fails or
+    its RMS exceeds MAX_FIT_RMS_FRACTION of the radius (the nominal radius is far from the data)."""
+    p = _check(points, artifact)
+    if isinstance(artifact, Sphere):
+        c = fit_sphere_center(p, artifact.radius, init=artifact.c)
+        fitted: Artifact = Sphere(artifact.radius, tuple(float(v) for v in c))
+    elif isinstance(artifact, Cylinder):
+        a = artifact.a
+        c0 = np.asarray(artifact.center, dtype=float)
+        c = fit_cylinder_center(p, artifact.radius, a, init=c0)
+        c = c + (c0 @ a) * a  # keep the nominal axial position of the centre (irrelevant to axial errors)
+        fitted = Cylinder(artifact.radius, tuple(float(v) for v in c), tuple(float(v) for v in a))
+    elif isinstance(artifact, Plane):
+        n = artifact.n
+        off = float(np.mean((p - np.asarray(artifact.point, dtype=float)) @ n))
+        fitted = Plane(tuple(float(v) for v in np.asarray(artifact.point, dtype=float) + off * n), tuple(n))
+        return fitted
+    else:  # pragma: no cover - the base class is abstract
+        raise TypeError(f"cannot fit the position of a {type(artifact).__name__}")
+    rms = float(np.sqrt(np.mean(fitted.normal_error(p) ** 2)))
+    if not np.isfinite(rms) or rms > MAX_FIT_RMS_FRACTION * artifact.radius:
+        raise FitError(
+            f"{artifact.kind} of nominal radius {artifact.radius:g} mm does not fit the points: residual RMS "
+            f"{rms:.3g} mm after fitting its position (limit {MAX_FIT_RMS_FRACTION * artifact.radius:.3g} mm)"
+        )
+    return fitted
+
+
+def errors_with_fit(points: np.ndarray, artifact: Artifact, fit_center: bool) -> tuple[np.ndarray, Artifact]:
+    """(errors (N, 3) mm, artifact used): against the artifact as given, or — ``fit_center`` — against the artifact
+    with its position fitted (nominal radius fixed; see fit_artifact_position)."""
+    used = fit_artifact_position(points, artifact) if fit_center else artifact
+    return point_errors(points, used), used
