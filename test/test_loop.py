@@ -56,7 +56,7 @@ def sim_scan(seed: int, effect: str | None = None, mag: float = 0.0, H: int = 40
 CFG = dict(iterations=120, max_iter=2, trace=TraceConfig(n_perm=49))
 
 
-def _loop(effect, mag, seed, n=12, **kw):
+def _loop(effect, mag, seed, n=10, **kw):
     scans = [sim_scan(seed * 100 + k, effect, mag) for k in range(n)]
     data = from_scans(scans)
     return data, run_loop(data, LoopConfig(seed=seed, **{**CFG, **kw}))
@@ -64,7 +64,6 @@ def _loop(effect, mag, seed, n=12, **kw):
 
 @pytest.mark.parametrize("effect,mag,seed,expected", [
     ("intensity", 0.03, 0, "field_intensity"),
-    ("intensity", 0.015, 1, "field_intensity"),
     ("pass", 0.02, 0, "field_pass"),
     ("pass", 0.01, 2, "field_pass"),
 ])
@@ -123,7 +122,7 @@ def test_bad_inputs(tmp_path):
         load_inputs([bad], "sphere:radius=50,center=fit")
     # radius far from the data → clear error, not a silently bad fit
     with pytest.raises(ValueError, match="does not fit"):
-        from_scans([sim_scan(0)], Sphere(200.0), fit_center=True)
+        from_scans([sim_scan(0)], Sphere(2.0), fit_center=True)
     # too few clouds to hold out
     data = from_scans([sim_scan(k) for k in range(2)])
     with pytest.raises(LoopInputError, match="too few"):

@@ -69,6 +69,7 @@ class ScanOutcome:
     frame_id: str
     points: int
     quality: Any | None = None
+    settings_stamp_ns: int | None = None  # stamp of the last settings sent before this scan (None: none sent)
 
     @property
     def verdict(self) -> str:
@@ -310,7 +311,7 @@ class _Replayer:
             from rclpy.duration import Duration
 
             pub.wait_for_all_acked(Duration(seconds=10))
-            time.sleep(0.05)
+            time.sleep(0.1)
 
     def wait_qualities(self, n: int, timeout: float) -> bool:
         with self.cond:
@@ -389,6 +390,7 @@ def replay_bag(
         rep.connect(discovery_timeout, need_settings=bool(settings_topics))
         wanted = set(scan_topics) | set(settings_topics)
         t0_bag: int | None = None
+        last_settings: int | None = None
         t0_wall = time.monotonic()
         for m in reader.messages(topics=wanted):
             if not fast:
@@ -402,10 +404,11 @@ def replay_bag(
             if m.topic in settings_topics:
                 rep.send("settings", raw)
                 result.settings_sent += 1
+                last_settings = _header_of(m.msg)[0]
                 continue
             stamp, frame = _header_of(m.msg)
             n = int(m.msg.width) * int(m.msg.height)
-            outcome = ScanOutcome(len(result.scans), m.topic, stamp, frame, n)
+            outcome = ScanOutcome(len(result.scans), m.topic, stamp, frame, n, settings_stamp_ns=last_settings)
             result.scans.append(outcome)
             rep.send("scan", raw)
             if fast:
@@ -432,8 +435,17 @@ def replay_bag(
         result.notes.append(f"{len(rep.qualities) - len(result.scans)} extra ScanQuality messages received "
                             "(another publisher on the scan topic?)")
     for s in result.scans:
-        if s.quality is not None and s.stamp_ns and _header_of(s.quality)[0] != s.stamp_ns:
+        q = s.quality
+        if q is None:
+            continue
+        if s.stamp_ns and _header_of(q)[0] != s.stamp_ns:
             result.notes.append(f"scan #{s.index}: quality stamp differs from the scan's (paired by order)")
+        # The node must have used the settings sent just before the scan when they are stamped at or before it.
+        if s.settings_stamp_ns is not None and s.settings_stamp_ns <= s.stamp_ns and (
+                q.settings_defaulted or _header_of(q.settings)[0] != s.settings_stamp_ns):
+            result.notes.append(f"scan #{s.index}: judged with settings stamped {_header_of(q.settings)[0]} ns "
+                                f"(defaulted: {q.settings_defaulted}), not those sent before it "
+                                f"({s.settings_stamp_ns} ns)")
     result.losses = describe_loss(getattr(reader, "report", None))
     if not result.complete:
         result.notes.append(f"{result.scans_sent - result.answered} scans got no ScanQuality within "

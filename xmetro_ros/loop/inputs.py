@@ -26,8 +26,14 @@ MEASURED_FEATURES = ["N_x", "N_y", "N_z", "Inc", "ViewAng", "R_y", "ang"]
 
 
 def _errors(points: np.ndarray, artifact: Artifact, fit_center: bool) -> tuple[np.ndarray, Artifact]:
+    from ..artifacts import Sphere
+    from ..fitting import fit_sphere
     from ..targets import errors_with_fit
 
+    if fit_center and isinstance(artifact, Sphere):
+        # Start the fixed-radius fit from a free sphere fit: measured frames put the sphere far from the origin.
+        c0, _r, _rms = fit_sphere(points)
+        artifact = Sphere(artifact.radius, tuple(float(v) for v in c0))
     return errors_with_fit(points, artifact, fit_center)
 
 
