@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
 from xmetro_ros.demo import run_demo
+from xmetro_ros.predict import Tolerance, compare_outputs, read_outputs
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -16,6 +18,11 @@ def test_demo_end_to_end(tmp_path):
     assert res.ok, res.errors
     assert not res.replay.losses and res.replay.complete and res.replay.scans_sent == 4
     assert len(res.outputs) == 4 and all(o.deviations is not None for o in res.outputs)
+    # The node in its own process gives the golden outputs of bags/demo.mcap.
+    golden = json.loads((ROOT / "bags" / "golden" / "golden.json").read_text())
+    diffs = compare_outputs(res.outputs, read_outputs(ROOT / "bags" / "golden" / "demo.mcap"),
+                            Tolerance.from_dict(golden["tolerance"]), clouds=("deviations",))
+    assert not diffs, "\n".join(diffs[:20])
     # The worst region is the largest predicted deviation of the scan with the largest p95.
     assert res.worst is not None and res.worst["max_dev_mm"] > 0
     ex = res.explain
@@ -29,7 +36,7 @@ def test_demo_end_to_end(tmp_path):
     assert html.count("<span class='v'") == 4
     for section in ("Per-scan quality", "Deviation maps", "~/explain", "~/recommend_settings"):
         assert section in html
-    assert "failed" not in html
+    assert "~/explain failed" not in html and "~/recommend_settings failed" not in html
     # the recording holds inputs and outputs
     assert (tmp_path / "demo" / "outputs.mcap").stat().st_size > 0
     assert "xmetro_node ready" in (tmp_path / "demo" / "node.log").read_text()

@@ -117,6 +117,16 @@ def test_registry_errors_and_registration():
         F.compute_features("Inc", c)
 
 
+def test_degenerate_normals_rejected():
+    c = ctx_for([[0.0, 0.0, 10.0], [1.0, 0.0, 10.0]], [[0.0, 0.0, 1.0], [0.0, 0.0, 0.0]])
+    with pytest.raises(F.FeatureError, match="degenerate.*point 1"):
+        F.compute_features(["Inc"], c)
+    c = ctx_for([[0.0, 0.0, 10.0]], [[np.nan, 0.0, 1.0]])
+    with pytest.raises(F.FeatureError, match="degenerate"):
+        F.compute_features(F.STUDY_FEATURES, c)
+    assert F.compute_features(["lateral_density", "R_y"], c).shape == (1, 2)  # features without N still work
+
+
 def test_context_shape_checks():
     with pytest.raises(F.FeatureError, match="L must have shape"):
         F.FeatureContext(np.zeros((3, 3)), np.zeros((2, 3)), np.zeros((3, 3)), np.zeros(3), np.zeros(3), S)
@@ -148,3 +158,5 @@ def test_from_prepared_with_pose_and_settings():
     c3 = c.with_settings(ScanSettings(15.0, 5.0, 2.0))
     assert F.compute_features(["lateral_density", "exposure_time"], c3)[0].tolist() == [15.0, 2.0]
     assert F.compute_features(["lateral_density"], c)[0, 0] == 6.0  # original untouched
+    sub = c.subset(np.arange(0, len(prep), 3))
+    assert np.array_equal(F.compute_features(F.STUDY_FEATURES, sub), x[::3, :14])

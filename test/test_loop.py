@@ -24,39 +24,49 @@ DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 def sim_scan(seed: int, effect: str | None = None, mag: float = 0.0, H: int = 40, W: int = 60,
              noise: float = 0.004, n_pass: int = 4) -> Scan:
     """A sphere (random radius / placement) scanned by a head looking down; points displaced along the laser ray by
-    a declared geometric error (a function of incidence and height) + noise + the undeclared ``effect`` (mm)."""
+    a declared geometric error (a function of incidence and height) + noise + the undeclared ``effect`` (mm).
+    Half the scans run with the head turned 180° about Z (scanning −Y, laser line along −X) and every scan starts a
+    random distance before the sphere, so that scan time and line position are not functions of the geometry."""
     rng = np.random.default_rng(seed)
     radius = float(rng.choice([17.5, 22.5, 27.5]))
     art = Sphere(radius, tuple(rng.uniform(-3, 3, 3)))
-    ys = art.c[1] + np.linspace(-radius * 0.9, radius * 0.9, H)
+    flip = bool(rng.integers(0, 2))
+    sgn = -1.0 if flip else 1.0
+    ys = art.c[1] + sgn * np.linspace(-radius * 0.9, radius * 0.9, H)
     ang = np.linspace(-1, 1, W) * np.radians(35) * 0.45
-    dirs = np.stack([np.sin(ang), np.zeros(W), -np.cos(ang)], 1)
+    dirs = np.stack([sgn * np.sin(ang), np.zeros(W), -np.cos(ang)], 1)
     hx = art.c[0] + rng.uniform(-6, 6)
     src = np.stack([np.full(H, hx), ys, np.full(H, 90.0)], 1)
-    O, D = np.repeat(src, W, 0), np.tile(dirs, (H, 1))
-    t = art.intersect(O, D)
-    P = O + D * t[:, None]
+    orig, D = np.repeat(src, W, 0), np.tile(dirs, (H, 1))
+    t = art.intersect(orig, D)
+    P = orig + D * t[:, None]
     cosi = np.einsum("ij,ij->i", unit(P - art.c), -D)
     base = 0.03 * (1 - cosi) ** 1.5 + 0.01 * ((P[:, 2] - art.c[2]) / radius)
     line = np.repeat(np.arange(H), W).astype(float)
     inten = np.clip(cosi * rng.uniform(0.3, 1.0) + rng.normal(0, 0.05, len(P)), 0, 1)
     passid = line * n_pass // H
+    tt = (line + rng.integers(0, H)) / 200.0  # s since scan start (200 profiles/s)
+    u = sgn * (P[:, 0] - hx)  # along the head's laser line (head X)
     extra = np.zeros(len(P))
     if effect == "intensity":  # reflectance-dependent range bias
         extra = mag * (inten - 0.5) * 2
     elif effect == "pass":  # per-pass offset along the ray
         extra = mag * rng.normal(0, 1, n_pass)[passid.astype(int)]
+    elif effect == "drift":  # range drift over scan time (a thermal cycle of period 0.15 s)
+        extra = mag * np.sin(2 * np.pi * tt / 0.15)
+    elif effect == "line":  # distortion along the laser line (a ripple of period 2π·6 mm)
+        extra = mag * np.sin(u / 6.0)
     P = P + D * (base + extra + rng.normal(0, noise, len(P)))[:, None]
-    fields = {"intensity": inten, "line": line, "t": (line + rng.integers(0, H // 2)) / 200.0,
-              "u": P[:, 0] - hx, "pass": passid}
-    return Scan(P.reshape(H, W, 3), ScanSettings(10, 4, 0.5), HeadPose.looking_down(90.0, y_mm=ys[0], x_mm=hx),
+    fields = {"intensity": inten, "line": line, "t": tt, "u": u, "pass": passid}
+    pose = HeadPose(np.array([hx, ys[0], 90.0]), np.diag([sgn, sgn, 1.0]))
+    return Scan(P.reshape(H, W, 3), ScanSettings(10, 4, 0.5), pose,
                 "xm-ls90", fields={k: v.reshape(H, W).astype(np.float32) for k, v in fields.items()}, artifact=art)
 
 
 CFG = dict(iterations=120, max_iter=2, trace=TraceConfig(n_perm=49))
 
 
-def _loop(effect, mag, seed, n=10, **kw):
+def _loop(effect, mag, seed, n=12, **kw):
     scans = [sim_scan(seed * 100 + k, effect, mag) for k in range(n)]
     data = from_scans(scans)
     return data, run_loop(data, LoopConfig(seed=seed, **{**CFG, **kw}))

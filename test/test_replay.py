@@ -40,7 +40,7 @@ def test_regression_bag_through_live_node_matches_golden(live_node, tmp_path):
     rec = tmp_path / "live.mcap"
     res = replay_bag(bag, fast=True, record=rec)
     assert res.complete and res.scans_sent == len(golden["bags"]["regression"]["scans"]) == 4
-    assert res.settings_sent == 4 and res.defaulted == 0 and not res.losses
+    assert res.settings_sent == 4 and res.defaulted == 0 and not res.losses and not res.notes, res.notes
     live = read_outputs(rec)
     ref = read_outputs(BAGS / "golden" / "regression.mcap")
     assert all(o.deviations is not None and o.corrected is not None for o in live)

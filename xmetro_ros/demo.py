@@ -16,8 +16,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import signal
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -25,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["register", "run", "run_demo", "DemoResult", "NodeProcess", "default_demo_bag"]
+__all__ = ["register", "run", "run_demo", "DemoResult", "default_demo_bag"]
 
 REGION_RADIUS_M = 0.004
 EXPLAIN_MAX_POINTS = 200
@@ -40,49 +38,6 @@ def default_demo_bag() -> Path:
         raise FileNotFoundError("xmetro demo needs the repository's bags/demo.mcap: run it from a clone "
                                 "(or pass --bag)")
     return root / "bags" / "demo.mcap"
-
-
-class NodeProcess:
-    """``xmetro_node`` in a child process with the localhost-only ROS environment; stopped with SIGINT."""
-
-    def __init__(self, params: dict[str, Any], log_path: Path, env: dict[str, str]) -> None:
-        cmd = [sys.executable, "-m", "xmetro_ros.node", "--ros-args"]
-        for k, v in params.items():
-            cmd += ["-p", f"{k}:={v}"]
-        log_path.parent.mkdir(parents=True, exist_ok=True)
-        self.log_path = log_path
-        self._log = open(log_path, "wb")
-        self.proc = subprocess.Popen(cmd, stdout=self._log, stderr=subprocess.STDOUT, env=env)
-
-    def alive(self) -> bool:
-        return self.proc.poll() is None
-
-    def stop(self, timeout: float = 10.0) -> int | None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
-            try:
-                self.proc.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.proc.terminate()
-                try:
-                    self.proc.wait(5.0)
-                except subprocess.TimeoutExpired:
-                    self.proc.kill()
-                    self.proc.wait()
-        self._log.close()
-        return self.proc.returncode
-
-    def log_tail(self, n: int = 20) -> str:
-        try:
-            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-n:])
-        except OSError:
-            return ""
-
-    def __enter__(self) -> NodeProcess:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
 
 
 class DemoResult:
@@ -110,7 +65,7 @@ def _stamp(ns: int) -> Any:
 
 
 def _worst_region(outputs: list[Any]) -> dict[str, Any] | None:
-    """Scan with the largest p95 |error| norm and its point with the largest predicted |deviation| (metres)."""
+    """Scan with the largest p95 |error| norm and its (well measured) point with the largest predicted |deviation|."""
     from .predict import deviation_arrays
 
     best = None
@@ -123,9 +78,17 @@ def _worst_region(outputs: list[Any]) -> dict[str, Any] | None:
     if best is None:
         return None
     o = outputs[best[1]]
-    pts, dev, _flags = deviation_arrays(o.deviations)
+    from . import flags as fl
+
+    pts, dev, flags = deviation_arrays(o.deviations)
     n = np.linalg.norm(dev, axis=1)
     ok = np.isfinite(n) & np.isfinite(pts).all(axis=1)
+    # A region the scanner actually measured well enough to judge: no grazing, outlier, out-of-domain or unreliable
+    # normal flag (over-tolerance is what we look for); all predicted points if there is none.
+    bad = np.uint16(fl.FLAG_GRAZING_INCIDENCE | fl.FLAG_GRAZING_VIEW | fl.FLAG_OUTLIER | fl.FLAG_OUT_OF_DOMAIN
+                    | fl.FLAG_UNRELIABLE_NORMAL | fl.FLAG_INVALID_POINT)
+    if (ok & ((flags & bad) == 0)).any():
+        ok &= (flags & bad) == 0
     if not ok.any():
         return None
     j = int(np.flatnonzero(ok)[np.argmax(n[ok])])
@@ -271,7 +234,8 @@ def run_demo(
     from .predict import read_outputs
     from .replay import replay_bag
     from .report_html import write_report
-    from .ros_env import apply_ros_env, ros_env
+    from .ros_env import apply_ros_env
+    from .ros_util import NodeProcess
 
     res = DemoResult()
     t0 = time.monotonic()
@@ -287,33 +251,33 @@ def run_demo(
     if model_dir is not None:
         params["model_dir"] = str(Path(model_dir).resolve())
     log(f"xmetro demo: ROS_DOMAIN_ID={env_vars['ROS_DOMAIN_ID']}, localhost-only DDS; node log {out_dir / 'node.log'}")
-    node = NodeProcess(params, out_dir / "node.log", ros_env())
+    node = NodeProcess(params=params, domain_id=int(env_vars["ROS_DOMAIN_ID"]))
     try:
         t = time.monotonic()
-        try:
-            res.replay = replay_bag(bag, fast=True, record=record, discovery_timeout=timeout, answer_timeout=timeout,
-                                    log=lambda s: log("  " + s))
-        except Exception as e:
-            res.errors.append(f"replay failed: {type(e).__name__}: {e}")
-            if not node.alive():
-                res.errors.append(f"xmetro_node exited ({node.proc.returncode}); log tail:\n{node.log_tail()}")
+        node.start(timeout=timeout)
+        res.timings["node_start_s"] = time.monotonic() - t
+        t = time.monotonic()
+        res.replay = replay_bag(bag, fast=True, record=record, discovery_timeout=timeout, answer_timeout=timeout,
+                                log=lambda s: log("  " + s))
         res.timings["replay_s"] = time.monotonic() - t
-        if res.replay is not None:
-            res.outputs = read_outputs(record)
-            res.worst = _worst_region(res.outputs)
-            if res.worst is None:
-                res.errors.append("no scan was processed: no region to explain")
-            else:
-                t = time.monotonic()
-                res.explain, res.recommend = _ask_services("xmetro_node", res.worst, timeout)
-                res.timings["services_s"] = time.monotonic() - t
-                for k, v in (("~/explain", res.explain), ("~/recommend_settings", res.recommend)):
-                    if "error" in v:
-                        res.errors.append(f"{k} failed: {v['error']}")
-            if not res.replay.complete:
-                res.errors.append(f"{res.replay.scans_sent - res.replay.answered} scans were not judged")
+        res.outputs = read_outputs(record)
+        res.worst = _worst_region(res.outputs)
+        if res.worst is None:
+            res.errors.append("no scan was processed: no region to explain")
+        else:
+            t = time.monotonic()
+            res.explain, res.recommend = _ask_services("xmetro_node", res.worst, timeout)
+            res.timings["services_s"] = time.monotonic() - t
+            for k, v in (("~/explain", res.explain), ("~/recommend_settings", res.recommend)):
+                if "error" in v:
+                    res.errors.append(f"{k} failed: {v['error']}")
+        if not res.replay.complete:
+            res.errors.append(f"{res.replay.scans_sent - res.replay.answered} scans were not judged")
+    except Exception as e:  # a failed step is reported (summary, report); the node is stopped in any case
+        res.errors.append(f"{type(e).__name__}: {e}")
     finally:
         node.stop()
+        (out_dir / "node.log").write_text("\n".join(node.lines) + "\n")
     t = time.monotonic()
     summary = _summary_lines(res)
     scans = _report_scans(bag, res.outputs) if res.outputs else []

@@ -230,6 +230,16 @@ class FeatureContext:
         return replace(self, L=g.L, V=g.V, standoff=g.standoff, source_distance=g.source_distance, u=g.u, s=g.s,
                        baseline_mm=baseline, _cache={})
 
+    def subset(self, rows: np.ndarray) -> FeatureContext:
+        """The context restricted to ``rows`` (indices or boolean mask) of its points."""
+        def cut(v: Any) -> Any:
+            return None if v is None else v[rows]
+
+        return replace(self, normals=self.normals[rows], L=self.L[rows], V=self.V[rows], standoff=self.standoff[rows],
+                       source_distance=self.source_distance[rows], fields={k: v[rows] for k, v in self.fields.items()},
+                       points=cut(self.points), u=cut(self.u), s=cut(self.s), normal_quality=cut(self.normal_quality),
+                       _cache={})
+
     def with_settings(self, settings: ScanSettings) -> FeatureContext:
         """The same geometry under other scan settings."""
         return replace(self, settings=settings, _cache={})
@@ -247,6 +257,18 @@ class FeatureContext:
         if v is None:
             v = self._cache[key] = fn()
         return v
+
+    def check_normals(self) -> np.ndarray:
+        """Raise FeatureError when a normal is not finite or not of unit length (±1e-3): degenerate normals would
+        silently give Inc = 0, ang = 0. Returns the squared norms."""
+        n = self.normals
+        nn = n[:, 0] * n[:, 0] + n[:, 1] * n[:, 1] + n[:, 2] * n[:, 2]
+        bad = ~(np.abs(nn - 1) <= 2e-3)  # NaN-safe
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise FeatureError(f"{int(bad.sum())} normal(s) are degenerate (not finite or not unit length), e.g. "
+                               f"point {i}: {n[i].tolist()}")
+        return nn
 
     # shared intermediates
     def n_dot_l(self) -> np.ndarray:
@@ -341,6 +363,8 @@ def compute_features(
         for fld in f.fields:
             if fld not in ctx.fields:
                 raise MissingFieldError(fld, f.name, ctx.fields)
+    if any("normals" in f.inputs for f in feats):
+        ctx.cached("normals_checked", ctx.check_normals)
     m = len(ctx)
     if out is None:
         out = np.empty((m, len(feats)), dtype=dtype)

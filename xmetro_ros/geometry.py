@@ -153,25 +153,29 @@ def point_geometry(points: np.ndarray, pose: HeadPose, baseline_mm: float, dtype
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
-    # Column-wise arithmetic (no (N,3) norms / where-divides): this runs on every live scan of up to ~200k points.
-    rot = pose.rotation.astype(dtype)
-    ph = (pts - pose.position).astype(dtype, copy=False) @ rot
-    x, y, z = ph[:, 0], ph[:, 1], ph[:, 2]
+    # Column-wise arithmetic on contiguous rows, no (N,3) @ (3,3) matmul: BLAS threading makes that 100x slower
+    # on a busy machine, and this runs on every live scan of up to ~200k points.
+    r = pose.rotation
+    d = np.ascontiguousarray((pts - pose.position).T, dtype=dtype)  # (3, N)
+    identity = bool(np.array_equal(r, np.eye(3)))
+    if identity:
+        x, y, z = d
+    else:  # p_h = R^T (p - position): column j is sum_i d_i R[i, j]
+        x, y, z = (r[0, j] * d[0] + r[1, j] * d[1] + r[2, j] * d[2] for j in range(3))
     xz2 = x * x + z * z
     # Source lies on the head's Y axis at the point's head-Y coordinate: to_src = (0, y, 0) - p_h = (-x, 0, -z).
     dist = np.sqrt(xz2)
     inv_s = np.divide(1.0, dist, out=np.zeros_like(dist), where=dist > 0)
-    dcam = np.sqrt(xz2 + dtype(baseline_mm) ** 2)
+    dcam = np.sqrt(xz2 + float(baseline_mm) ** 2)
     inv_c = np.divide(1.0, dcam, out=np.zeros_like(dcam), where=dcam > 0)
-    L = np.empty_like(ph)
-    L[:, 0] = -x * inv_s
-    L[:, 1] = 0.0
-    L[:, 2] = -z * inv_s
-    V = np.empty_like(ph)
-    V[:, 0] = -x * inv_c
-    V[:, 1] = baseline_mm * inv_c
-    V[:, 2] = -z * inv_c
-    if not np.array_equal(pose.rotation, np.eye(3)):  # unit vectors in the head frame → scan frame
-        L = L @ rot.T
-        V = V @ rot.T
-    return PointGeometry(L=L, V=V, source_distance=dist, standoff=-z, u=x.copy(), s=y.copy())
+    lh = (-x * inv_s, np.zeros_like(x), -z * inv_s)
+    vh = (-x * inv_c, float(baseline_mm) * inv_c, -z * inv_c)
+    L = np.empty((len(x), 3), dtype=x.dtype)
+    V = np.empty((len(x), 3), dtype=x.dtype)
+    for k in range(3):  # head frame → scan frame: world_k = sum_j R[k, j] head_j
+        if identity:
+            L[:, k], V[:, k] = lh[k], vh[k]
+        else:
+            L[:, k] = r[k, 0] * lh[0] + r[k, 2] * lh[2]
+            V[:, k] = r[k, 0] * vh[0] + r[k, 1] * vh[1] + r[k, 2] * vh[2]
+    return PointGeometry(L=L, V=V, source_distance=dist, standoff=-z, u=x, s=y)

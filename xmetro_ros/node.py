@@ -21,6 +21,7 @@ so services and parameter changes stay responsive whatever the executor. The com
 from __future__ import annotations
 
 import math
+import sys
 import threading
 import time
 from collections import deque
@@ -34,7 +35,7 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import PointCloud2
+from sensor_msgs.msg import PointCloud2, PointField
 
 from . import flags as fl
 from . import node_params
@@ -386,13 +387,27 @@ def _create_cloud(header: Any, arrays: dict[str, np.ndarray], h: int, w: int) ->
 def _corrected_cloud(msg: PointCloud2, dtype_from_fields: Any, dev_mm: np.ndarray, keep: np.ndarray | None,
                      h: int, w: int) -> PointCloud2:
     """The input cloud (same fields and byte order) with x, y, z + predicted error; unpredicted points unchanged."""
-    dt = dtype_from_fields(msg.fields, msg.point_step, is_bigendian=bool(msg.is_bigendian))
-    raw = np.ndarray(shape=(int(msg.height), int(msg.width)), dtype=dt, buffer=msg.data,
-                     strides=(int(msg.row_step), int(msg.point_step))).reshape(-1)
-    rec = raw[keep] if keep is not None else raw.copy()
     add = np.nan_to_num(dev_mm * 1e-3, nan=0.0)
-    for i, axis in enumerate(("x", "y", "z")):
-        rec[axis] = rec[axis] + add[:, i].astype(rec[axis].dtype)
+    by = {f.name: f for f in msg.fields}
+    ps = int(msg.point_step)
+    fx = by["x"]
+    fast = (not msg.is_bigendian and sys.byteorder == "little" and ps % 4 == 0 and fx.offset % 4 == 0
+            and all(by[a].datatype == PointField.FLOAT32 for a in "xyz")
+            and by["y"].offset == fx.offset + 4 and by["z"].offset == fx.offset + 8
+            and int(msg.row_step) == ps * int(msg.width))
+    if fast:
+        # The common case (our own clouds): one float32 copy of the buffer, x, y, z adjusted in place.
+        rec = np.frombuffer(msg.data, dtype=np.float32).reshape(-1, ps // 4)
+        rec = rec[keep] if keep is not None else rec.copy()
+        c = fx.offset // 4
+        rec[:, c:c + 3] += add.astype(np.float32)
+    else:
+        dt = dtype_from_fields(msg.fields, ps, is_bigendian=bool(msg.is_bigendian))
+        raw = np.ndarray(shape=(int(msg.height), int(msg.width)), dtype=dt, buffer=msg.data,
+                         strides=(int(msg.row_step), ps)).reshape(-1)
+        rec = raw[keep] if keep is not None else raw.copy()
+        for i, axis in enumerate(("x", "y", "z")):
+            rec[axis] = rec[axis] + add[:, i].astype(rec[axis].dtype)
     out = PointCloud2()
     out.header = msg.header
     out.height, out.width = h, w
@@ -401,7 +416,7 @@ def _corrected_cloud(msg: PointCloud2, dtype_from_fields: Any, dev_mm: np.ndarra
     out.point_step = int(msg.point_step)
     out.row_step = int(msg.point_step) * w
     out.is_dense = False
-    out.data = np.ascontiguousarray(rec).view(np.uint8).ravel().tobytes()
+    out.data = np.ascontiguousarray(rec).tobytes()
     return out
 
 

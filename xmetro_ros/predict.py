@@ -367,6 +367,8 @@ def predict_bag(
     from .replay import QUALITY_TYPE, ReplayError, classify_topics, describe_loss
 
     t_start = time.monotonic()
+    if Path(out).exists():
+        raise FileExistsError(f"output {out} already exists")
     values = node_values(model_dir, params)
     bag = Path(bag)
     reader = BagReader(bag)

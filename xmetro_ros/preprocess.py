@@ -151,11 +151,13 @@ def _orient(normals: np.ndarray, points: np.ndarray, toward: np.ndarray | None) 
         ref = np.asarray(toward, dtype=normals.dtype)
         if ref.shape not in ((3,), normals.shape):
             raise PreprocessError(f"toward must have shape (3,) or {normals.shape}, got {ref.shape}")
-    if ref.ndim == 1:
-        d = normals @ ref.astype(normals.dtype)
+    if ref.ndim == 1:  # column ops, not a BLAS gemv (threaded BLAS stalls on a busy machine)
+        r = ref.astype(normals.dtype)
+        d = normals[:, 0] * r[0] + normals[:, 1] * r[1] + normals[:, 2] * r[2]
     else:
         d = np.einsum("ij,ij->i", normals, ref.astype(normals.dtype, copy=False))
-    normals[d < 0] *= -1
+    # multiply by ±1 rather than a boolean-mask scatter: grid normals often all need flipping
+    np.multiply(normals, np.where(d < 0, normals.dtype.type(-1), normals.dtype.type(1))[:, None], out=normals)
     return normals
 
 

@@ -104,11 +104,13 @@ def coverage_mask(ctx: Any, grazing_incidence_deg: float, grazing_view_deg: floa
     return (cos_i > np.cos(np.radians(grazing_incidence_deg))) & (cos_v > np.cos(np.radians(grazing_view_deg)))
 
 
-def _stats(pred_mm: np.ndarray, covered: np.ndarray) -> tuple[float, float]:
-    e = np.linalg.norm(pred_mm[covered], axis=1)
-    if len(e) == 0:
-        return float("inf"), float("inf")
-    return float(e.mean()), float(np.percentile(e, 95))
+def _stats(pred_mm: np.ndarray, covered: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and p95 of the |error| norm over the covered points: pred (..., m, 3) → (...,) each (inf if none)."""
+    e = np.sqrt(np.einsum("...ij,...ij->...i", pred_mm[..., covered, :], pred_mm[..., covered, :]))
+    if e.shape[-1] == 0:
+        inf = np.full(e.shape[:-1], np.inf)
+        return inf, inf
+    return e.mean(axis=-1), np.percentile(e, 95, axis=-1)
 
 
 def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.ndarray, pose: HeadPose,
@@ -130,7 +132,7 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
     Raises:
         ValueError: empty region, or no orientation keeps the required coverage.
     """
-    from .features import compute_features
+    from .features import REGISTRY, compute_features
 
     rows = np.asarray(rows, dtype=np.int64)
     rows = rows[np.isfinite(before_features[rows]).all(axis=1)]
@@ -147,9 +149,11 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
     cov_before = coverage_mask(sub, grazing_incidence_deg, grazing_view_deg)
     pred_before = np.asarray(model_set.predict(before_features[rows]), dtype=np.float64)
     mean_b, p95_b = _stats(pred_before, cov_before)
-    before = Candidate(settings, np.eye(3), pose, mean_b, p95_b, float(cov_before.mean()))
+    before = Candidate(settings, np.eye(3), pose, float(mean_b), float(p95_b), float(cov_before.mean()))
     need = min(min_coverage, before.coverage) - 1e-12
 
+    dep = [j for j, n in enumerate(names) if "settings" in tuple(REGISTRY.get(n).inputs)]
+    dep_names = [names[j] for j in dep]
     orients = orientation_grid(max_tilt, tilt_steps, max_turn, turn_steps)
     ranked: list[Candidate] = []
     n_kept = 0
@@ -163,16 +167,20 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
         n_kept += 1
         # (S, m, F): the S settings versions of the same region cloud, predicted together (predict_batch keeps
         # one PointNet set partition for all versions, as predict would for each).
-        X = np.stack([compute_features(names, ctx_o.with_settings(s), dtype=np.float32) for s in cands])
+        # Geometry features once per orientation; only the settings-dependent columns per settings.
+        X = np.repeat(compute_features(names, ctx_o.with_settings(cands[0]), dtype=np.float32)[None], len(cands),
+                      axis=0)
+        for k in range(1 if dep else len(cands), len(cands)):
+            X[k][:, dep] = compute_features(dep_names, ctx_o.with_settings(cands[k]), dtype=np.float32)
         ok = np.isfinite(X).all(axis=(0, 2))
         cov = cov & ok
         X[:, ~ok] = 0.0
         step = max(1, batch_rows // m)
         pred = np.concatenate([np.asarray(model_set.predict_batch(X[i:i + step]), dtype=np.float64)
                                for i in range(0, len(X), step)])
+        means, p95s = _stats(pred, cov)
         for k, s in enumerate(cands):
-            mean_k, p95_k = _stats(pred[k], cov)
-            ranked.append(Candidate(s, r, pose_o, mean_k, p95_k, float(cov.mean())))
+            ranked.append(Candidate(s, r, pose_o, float(means[k]), float(p95s[k]), float(cov.mean())))
     if not ranked:
         raise ValueError(f"no orientation keeps the coverage >= {need:.3f} of the region")
     ranked.sort(key=lambda c: (c.p95_mm, c.mean_mm))

@@ -24,6 +24,7 @@ BAG's reader reports what it could not read; every complete message is replayed 
 from __future__ import annotations
 
 import argparse
+import struct
 import sys
 import threading
 import time
@@ -38,6 +39,7 @@ __all__ = [
     "ScanOutcome",
     "replay_bag",
     "classify_topics",
+    "cdr_header",
     "describe_loss",
     "register",
     "run",
@@ -180,6 +182,27 @@ def _header_of(msg: Any) -> tuple[int, str]:
     return int(h.stamp.sec) * 1_000_000_000 + int(h.stamp.nanosec), str(h.frame_id)
 
 
+def cdr_header(raw: bytes, cloud: bool = False) -> tuple[int, str, int]:
+    """(stamp ns, frame_id, width × height if ``cloud``) of a CDR message that starts with a std_msgs/Header.
+
+    Read from the bytes (no deserialisation of the point data). Raises ValueError on a truncated/odd buffer.
+    """
+    if len(raw) < 16 or raw[0] != 0 or raw[1] not in (0, 1):
+        raise ValueError("not a CDR buffer")
+    e = "<" if raw[1] == 1 else ">"
+    sec, nsec, n = struct.unpack_from(e + "iII", raw, 4)
+    if 16 + n > len(raw):
+        raise ValueError("CDR header string runs past the buffer")
+    frame = bytes(raw[16:16 + n]).rstrip(b"\0").decode("utf-8", "replace")
+    points = 0
+    if cloud:
+        off = 16 + n
+        off += (-(off - 4)) % 4  # align to 4 relative to the payload start
+        height, width = struct.unpack_from(e + "II", raw, off)
+        points = int(height) * int(width)
+    return int(sec) * 1_000_000_000 + int(nsec), frame, points
+
+
 def _qos_like(infos: list[Any], depth: int) -> Any:
     """A subscription QoS compatible with every discovered publisher (reliable only if all are reliable)."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -270,7 +293,7 @@ class _Replayer:
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.pub_scan = node.create_publisher(PointCloud2, self.scan_topic, pub_qos)
         self.pub_settings = node.create_publisher(ScannerSettings, self.settings_topic, pub_qos)
-        quality_sub = self.subs[0] if self.subs else None
+        quality_sub = next((x for x in self.subs if x.topic_name == self.out["quality"]), None)
         ok = wait_for(
             lambda: self.pub_scan.get_subscription_count() > 0
             and (not need_settings or self.pub_settings.get_subscription_count() > 0)
@@ -279,8 +302,12 @@ class _Replayer:
         )
         if not ok:
             raise ReplayError(f"publishers/subscriptions to {self.node_name} not matched within {timeout:g} s")
-        # Matching is reported per side; give the node's writers a moment to match our readers as well.
-        time.sleep(0.5)
+        # Matching is reported per side: the node's writers must also have matched our readers, or the first
+        # answers are lost. Our readers were announced in creation order (quality first, diagnostics last) on DDS's
+        # reliable discovery channel, so a first /diagnostics message (the node publishes it every
+        # diagnostics_period) proves the node has matched the quality reader too. Without one, a fixed margin.
+        if not wait_for(lambda: self.counts["diagnostics"] > 0, timeout=min(3.0, left())):
+            time.sleep(0.5)
 
     def _on_output(self, key: str, topic: str, raw: bytes, mtype: Any, deserialize: Callable) -> None:
         msg = deserialize(raw, mtype) if key in ("quality", "diagnostics") else None
@@ -369,6 +396,8 @@ def replay_bag(
     bag = Path(bag)
     if not bag.exists():
         raise FileNotFoundError(f"bag {bag} does not exist")
+    if record is not None and Path(record).exists():
+        raise FileExistsError(f"record output {record} already exists")
     reader = BagReader(bag)
     bag_topics = dict(reader.topics())
     scan_topics, settings_topics = classify_topics(bag_topics, topics)
@@ -392,7 +421,7 @@ def replay_bag(
         t0_bag: int | None = None
         last_settings: int | None = None
         t0_wall = time.monotonic()
-        for m in reader.messages(topics=wanted):
+        for m in reader.messages(topics=wanted, deserialize=False):
             if not fast:
                 if t0_bag is None:
                     t0_bag = m.log_time_ns
@@ -404,10 +433,9 @@ def replay_bag(
             if m.topic in settings_topics:
                 rep.send("settings", raw)
                 result.settings_sent += 1
-                last_settings = _header_of(m.msg)[0]
+                last_settings = cdr_header(raw)[0]
                 continue
-            stamp, frame = _header_of(m.msg)
-            n = int(m.msg.width) * int(m.msg.height)
+            stamp, frame, n = cdr_header(raw, cloud=True)
             outcome = ScanOutcome(len(result.scans), m.topic, stamp, frame, n, settings_stamp_ns=last_settings)
             result.scans.append(outcome)
             rep.send("scan", raw)

@@ -1,19 +1,14 @@
 """Library of candidate explanatory variables for the residual (documented in docs/closed-loop.md).
 
-Two sources:
-
-- every per-point field of the input, named ``field_<name>`` (the name the feature registry resolves, so that a
-  selected field becomes a model feature the node reads from the PointCloud2). Fields whose name says they are an
-  identity (``pass``, ``profile``, ``pose``, ``*_id``) are *identity* candidates, held out inside their group.
-- derived quantities (only those the input can give): ``range`` (mm, point → laser source / scanner),
-  ``incidence_angle`` / ``viewing_angle`` (deg, between the nominal normal and the direction to the source /
-  camera), ``line_position`` (mm along the laser line), ``scan_position`` (mm along the scan direction),
-  ``x``/``y``/``z`` (mm, artifact frame), ``curvature`` (local surface variation λ_min / Σλ of the 16 nearest
-  neighbours, the point itself left out), ``density`` (points per mm² from the 8th-neighbour distance), ``profile_identity`` (identity of
-  each profile: the group itself for profile data, (cloud, line) for organized scans) and ``cloud_identity``.
-A derived candidate that duplicates a field (``line_position`` ↔ ``field_u``) is dropped in favour of the field.
-Candidates equivalent to a feature the model already has are flagged ``in_model`` (reported as controls, never
-selected).
+Fields: every per-point field of the input, named ``field_<name>`` (the name the feature registry resolves, so a
+selected field becomes a model feature the node reads from the PointCloud2). Fields named like an identity
+(``pass``, ``profile``, ``pose``, ``*_id``) are identity candidates, held out inside their group.
+Derived (when the input gives them): ``range`` (mm to the laser source / scanner), ``incidence_angle`` and
+``viewing_angle`` (deg, nominal normal vs direction to source / camera), ``line_position`` (mm along the laser
+line), ``scan_position`` (mm along the scan direction), ``x``/``y``/``z`` (mm), ``curvature`` (surface variation
+of the 16 nearest neighbours, the point left out), ``density`` (points per mm², 8th neighbour),
+``profile_identity`` and ``cloud_identity``. A derived candidate duplicating a field is dropped; candidates
+equivalent to a model feature are flagged ``in_model`` (reported as controls, never selected).
 """
 
 from __future__ import annotations
@@ -101,7 +96,8 @@ def build_candidates(
 
     def add(name: str, v: np.ndarray, kind: str, unit: str, desc: str, source: str, equiv: str | None) -> None:
         vals[name] = np.asarray(v, dtype=float)
-        info[name] = CandidateInfo(name, kind, unit, desc, source, name in feats or (equiv in feats if equiv else False))
+        in_model = name in feats or (equiv in feats if equiv else False)
+        info[name] = CandidateInfo(name, kind, unit, desc, source, in_model)
 
     want = set(include) if include is not None else None
 

@@ -53,7 +53,10 @@ def run(args: argparse.Namespace) -> int:
         if result.model is not None:
             from .export import export_loop_model
 
-            export_loop_model(result, data, Path(args.out) / "model")
+            try:
+                export_loop_model(result, data, Path(args.out) / "model")
+            except LoopInputError as e:  # derived (non-registry) features: report stays valid, no model dir
+                print(f"xmetro loop: model not exported: {e}", file=sys.stderr)
     except (ArtifactSpecError, LoopInputError, ValueError, FileNotFoundError, RuntimeError) as e:
         print(f"xmetro loop: error: {e}", file=sys.stderr)
         return 2

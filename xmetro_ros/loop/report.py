@@ -28,7 +28,8 @@ def _plot(p: dict, path: Path) -> None:
         ax.scatter(x[sel], y[sel], s=2, alpha=0.3, color=col, label=f"{key} (points)")
         edges = np.unique(np.quantile(x, np.linspace(0, 1, 17)))
         idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, len(edges) - 2)
-        m = np.bincount(idx, weights=y, minlength=len(edges) - 1) / np.maximum(np.bincount(idx, minlength=len(edges) - 1), 1)
+        nb = len(edges) - 1
+        m = np.bincount(idx, weights=y, minlength=nb) / np.maximum(np.bincount(idx, minlength=nb), 1)
         ax.plot(0.5 * (edges[:-1] + edges[1:]), m, color=col, lw=2, label=f"{key} (bin mean)")
     ax.set_xlabel(f"{p['variable']} [{p.get('unit', '')}]")
     ax.set_ylabel("residual along normal [µm]")
@@ -65,8 +66,9 @@ def write_report(result: LoopResult, out_dir: str | Path) -> Path:
              "## Candidates (iteration 1)", "", "| rank | name | kind | score | p | p (Holm) | significant |",
              "|---|---|---|---|---|---|---|"]
     for i, c in enumerate(rep["candidates"], 1):
+        flag = ("yes" if c["significant"] else "no") + (" (in model)" if c["in_model"] else "")
         lines.append(f"| {i} | {c['name']} | {c['kind']} | {c['score']:.4f} | {c['p_value']:.2g} | "
-                     f"{c['p_holm']:.2g} | {'yes' if c['significant'] else 'no'}{' (in model)' if c['in_model'] else ''} |")
+                     f"{c['p_holm']:.2g} | {flag} |")
     lines += ["", "## Iterations", ""]
     for it in rep["iterations"]:
         sel = it["selected"]

@@ -12,7 +12,6 @@ All errors in mm (nominal − measured), residual = actual − predicted.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np

@@ -13,17 +13,18 @@ class Anisotropy(Effect):
     law = (
         "lateral displacement in the laser plane (perpendicular to the ray, toward head +X): "
         "(a) peak bias on surfaces tilted along the line, tilt_mm * sin(gamma), sin(gamma) = N . lateral "
-        "(the spot's footprint stretches along the line, its peak moves toward the near side); (b) distortion residual distortion_mm * (u / u_norm_mm)^3, u = ray position on the "
-        "reference plane; (c) random quantisation sigma = quantization / lateral_density / sqrt(12). Nothing along "
+        "(the spot's footprint stretches along the line, its peak moves toward the near side); "
+        "(b) distortion residual distortion_mm * (u / u_norm_mm)^3, u = ray position on the reference plane; "
+        "(c) random quantisation sigma = quantization / lateral_density / sqrt(12). Nothing along "
         "the scan axis (encoder-accurate), so the scan axis Y is better than the lateral X, as the study states"
     )
     source = (
         "the study (sect. 1: anisotropic response, best along the axis of movement); lateral peak bias on tilted "
         "surfaces (Xu et al. 2009, along-line analogue); residual lens distortion (Isheil et al., Measurement 2011)"
     )
-    magnitude = "X bias 6 um at sin(gamma) = 0.5, 12 um at the horizon; distortion 5 um at u = 22 mm; noise 2-5 um"
+    magnitude = "X bias 10 um at sin(gamma) = 0.5, 20 um at the horizon; distortion 5 um at u = 22 mm; noise 2-5 um"
     drives = "X (N_x, ori_x, position u along the line; lateral_density through the noise)"
-    defaults = {"tilt_mm": 0.012, "distortion_mm": 0.008, "u_norm_mm": 25.0, "quantization": 0.1}
+    defaults = {"tilt_mm": 0.02, "distortion_mm": 0.008, "u_norm_mm": 25.0, "quantization": 0.1}
     nonnegative = ("quantization",)
     positive = ("u_norm_mm",)
 

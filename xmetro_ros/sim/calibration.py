@@ -8,9 +8,10 @@ Method (the same for measured and simulated profiles):
 3. report the RMS of all residuals of each bin over all profiles (um).
 
 Measured: the 15 p*.yml profiles of ``../shared/data/measured/atc5_profiler_sphere_r40`` (sensor frame, x and z,
-mm). Simulated: a sphere of radius 40 mm scanned with the default settings and effects, 15 profiles picked so that
-their cut radii match the measured fitted radii (alternately on the +Y and -Y side of the centre), each fitted in
-the head XZ plane (the laser plane).
+mm), read with ``xmetro_ros.measured.load_atc5``. Simulated: a sphere of radius 40 mm scanned with the default
+settings and effects by ``calibration_scanner()`` (the default model moved to the AT C5's longer stand-off), 15
+profiles picked so that their cut radii match the measured fitted radii (on the camera's +Y side of the centre),
+each fitted in the head XZ plane (the laser plane).
 """
 
 from __future__ import annotations
@@ -21,7 +22,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from ..artifacts import Sphere
 from ..scanner import ScannerModel
@@ -55,26 +55,17 @@ TOLERANCE: dict[tuple[float, float], float] = {
 
 
 def load_atc5_profiles(directory: str | Path) -> list[np.ndarray]:
-    """The 15 AT C5 profiles as (N, 2) arrays of sensor-frame (x, z), mm, in p1..p15 order.
+    """The 15 AT C5 profiles as (N, 2) arrays of sensor-frame (x, z), mm, in p1..p15 order, uncleaned (the
+    cleaning is ``clean_and_fit``'s, applied alike to simulated profiles).
 
-    Uses ``xmetro_ros.measured.load_atc5`` when the package has it; otherwise reads the OpenCV YAML files
-    (key ``scan_line``: flat x, 0, z, ...). Raises FileNotFoundError when the directory has no p*.yml.
-    """
+    Reads them with ``xmetro_ros.measured.load_atc5`` (FEAT's loader). Raises FileNotFoundError when the directory
+    has no p*.yml, ``measured.MeasuredDataError`` when a file is malformed."""
+    from ..measured import load_atc5
+
     directory = Path(directory)
-    files = sorted(directory.glob("p*.yml"), key=lambda p: int(p.stem[1:]) if p.stem[1:].isdigit() else 0)
-    if not files:
+    if not any(directory.glob("p*.yml")):
         raise FileNotFoundError(f"no AT C5 profiles p*.yml in {directory}")
-    out = []
-    for f in files:
-        text = f.read_text()
-        if text.startswith("%YAML"):
-            text = text.split("\n", 1)[1]  # OpenCV's "%YAML:1.0" directive is not standard YAML
-        data = yaml.safe_load(text)
-        arr = np.asarray(data["scan_line"], dtype=float)
-        if arr.size % 3:
-            raise ValueError(f"{f.name}: scan_line length {arr.size} is not a multiple of 3")
-        out.append(arr.reshape(-1, 3)[:, [0, 2]])
-    return out
+    return [p.raw_xz if p.raw_xz is not None else p.xz for p in load_atc5(directory, clean=False)]
 
 
 @dataclass

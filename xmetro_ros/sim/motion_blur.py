@@ -16,9 +16,9 @@ class MotionBlur(Effect):
         "scan by -latency_fraction * b (stamp lag); no return where fewer than min_fraction of the sub-rays hit"
     )
     source = "motion blur of line scanners at speed (Roos-Hoefgeest et al., Sensors 2023; maker guidance: speed x T)"
-    magnitude = "b = 0.04-0.33 mm over the study's levels; Y shift up to ~17 um at 3 /mm and 2 ms"
+    magnitude = "b = 0.04-0.33 mm over the study's levels; Y shift up to 10 um at 3 /mm and 2 ms"
     drives = "Y (direction_density x exposure_time, N_y); Z slightly through curvature"
-    defaults = {"substeps": 5, "min_fraction": 0.5, "latency_fraction": 0.05}
+    defaults = {"substeps": 5, "min_fraction": 0.5, "latency_fraction": 0.03}
     positive = ("substeps",)
     nonnegative = ("min_fraction", "latency_fraction")
 
