@@ -13,6 +13,7 @@ from xmetro_ros.geometry import HeadPose, unit
 from xmetro_ros.loop.candidates import build_candidates
 from xmetro_ros.loop.data import LoopInputError
 from xmetro_ros.loop.inputs import from_scans, load_inputs
+from xmetro_ros.loop.model import GivenModel, fit_family
 from xmetro_ros.loop.run import LoopConfig, run_loop
 from xmetro_ros.loop.trace import TraceConfig, holm
 from xmetro_ros.scan import Scan
@@ -66,31 +67,41 @@ def sim_scan(seed: int, effect: str | None = None, mag: float = 0.0, H: int = 40
 CFG = dict(iterations=120, max_iter=2, trace=TraceConfig(n_perm=49))
 
 
-def _loop(effect, mag, seed, n=12, **kw):
+@pytest.fixture(scope="module")
+def clean_model() -> GivenModel:
+    """The model of the current (study) features, trained on scans WITHOUT any undeclared effect."""
+    clean = from_scans([sim_scan(1000 + k) for k in range(6)])
+    return GivenModel(fit_family("catboost", clean.X, clean.errors, clean.feature_names, seed=0, iterations=150))
+
+
+def _loop(effect, mag, seed, n=8, given=None, **kw):
     scans = [sim_scan(seed * 100 + k, effect, mag) for k in range(n)]
     data = from_scans(scans)
-    return data, run_loop(data, LoopConfig(seed=seed, **{**CFG, **kw}))
+    return data, run_loop(data, LoopConfig(seed=seed, **{**CFG, **kw}), given=given)
 
 
 @pytest.mark.parametrize("effect,mag,seed,expected", [
-    ("intensity", 0.03, 0, "field_intensity"),
+    ("drift", 0.02, 0, "field_t"),
+    ("line", 0.02, 0, "field_u"),
+    ("intensity", 0.03, 1, "field_intensity"),
     ("pass", 0.02, 0, "field_pass"),
     ("pass", 0.01, 2, "field_pass"),
 ])
-def test_loop_names_injected_effect_and_cuts_error(effect, mag, seed, expected):
-    _, res = _loop(effect, mag, seed)
+def test_loop_names_injected_effect_and_cuts_error(clean_model, effect, mag, seed, expected):
+    _, res = _loop(effect, mag, seed, given=clean_model)
     rep = res.report
-    assert rep["selected"] is not None and rep["selected"]["name"] == expected
+    assert rep["selected"] is not None and rep["selected"]["name"] == expected, rep["candidates"][:3]
+    assert rep["candidates"][0]["significant"]
     before = np.mean([rep["before"][a]["mae"] for a in "xyz"])
     after = np.mean([rep["after"][a]["mae"] for a in "xyz"])
     assert after < 0.75 * before, (before, after)
     assert rep["after"]["normal"]["p95"] < rep["before"]["normal"]["p95"]
 
 
-def test_loop_reports_none_without_effect(tmp_path):
+def test_loop_reports_none_without_effect(clean_model, tmp_path):
     from xmetro_ros.loop.report import write_report
 
-    _, res = _loop(None, 0.0, 3)
+    _, res = _loop(None, 0.0, 3, given=clean_model)
     assert res.report["selected"] is None
     assert res.report["iterations"][0]["selected"] is None
     path = write_report(res, tmp_path)
@@ -108,7 +119,8 @@ def test_exported_model_lists_field_feature(tmp_path):
     from xmetro_ros.inference import ModelSet
     from xmetro_ros.loop.export import export_loop_model
 
-    data, res = _loop("intensity", 0.03, 0, n=8, max_iter=1)
+    # default path: the model family is retrained on the input's training clouds, then with the new feature
+    data, res = _loop("intensity", 0.03, 0, n=12, max_iter=1)
     assert res.added_features == ["field_intensity"]
     out = export_loop_model(res, data, tmp_path / "model")
     ms = ModelSet.load(out)

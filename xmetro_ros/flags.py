@@ -72,10 +72,14 @@ def flag_counts(flags: np.ndarray) -> list[int]:
 
 
 def angle_flags(normals: np.ndarray, L: np.ndarray, V: np.ndarray, grazing_incidence_deg: float,
-                grazing_view_deg: float) -> np.ndarray:
-    """GRAZING_INCIDENCE / GRAZING_VIEW bits for (M,) points from unit normals and unit L, V (M, 3)."""
-    cos_i = np.einsum("ij,ij->i", normals, L)
-    cos_v = np.einsum("ij,ij->i", normals, V)
+                grazing_view_deg: float, cos_i: np.ndarray | None = None, cos_v: np.ndarray | None = None
+                ) -> np.ndarray:
+    """GRAZING_INCIDENCE / GRAZING_VIEW bits for (M,) points from unit normals and unit L, V (M, 3)
+    (``cos_i`` = N·L, ``cos_v`` = N·V when already computed)."""
+    if cos_i is None:
+        cos_i = np.einsum("ij,ij->i", normals, L)
+    if cos_v is None:
+        cos_v = np.einsum("ij,ij->i", normals, V)
     out = np.zeros(len(normals), dtype=np.uint16)
     out[cos_i < np.cos(np.radians(grazing_incidence_deg))] |= FLAG_GRAZING_INCIDENCE
     out[cos_v < np.cos(np.radians(grazing_view_deg))] |= FLAG_GRAZING_VIEW
@@ -89,8 +93,15 @@ def domain_flags(X: np.ndarray, lo: np.ndarray, hi: np.ndarray, margin: float) -
     w = (hi - lo) * float(margin)
     lo_m = (lo - w).astype(X.dtype)
     hi_m = (hi + w).astype(X.dtype)
-    out_mask = ((X < lo_m) | (X > hi_m)).any(axis=1)
-    return np.where(out_mask, np.uint16(FLAG_OUT_OF_DOMAIN), np.uint16(0)).astype(np.uint16)
+    out = np.zeros(len(X), dtype=np.uint16)
+    if len(X) == 0:
+        return out
+    # Only the columns whose min / max leave the range need an element-wise test (usually few).
+    bad_cols = np.flatnonzero((np.fmin.reduce(X, axis=0) < lo_m) | (np.fmax.reduce(X, axis=0) > hi_m))
+    if len(bad_cols):
+        Xb = X[:, bad_cols]
+        out[((Xb < lo_m[bad_cols]) | (Xb > hi_m[bad_cols])).any(axis=1)] = FLAG_OUT_OF_DOMAIN
+    return out
 
 
 def verdict(n_valid: int, n_usable: int, n_flagged: int, n_over_tolerance: int, th: VerdictThresholds,

@@ -20,7 +20,9 @@ so services and parameter changes stay responsive whatever the executor. The com
 
 from __future__ import annotations
 
+import array
 import math
+import os
 import sys
 import threading
 import time
@@ -416,7 +418,12 @@ def _corrected_cloud(msg: PointCloud2, dtype_from_fields: Any, dev_mm: np.ndarra
     out.point_step = int(msg.point_step)
     out.row_step = int(msg.point_step) * w
     out.is_dense = False
-    out.data = np.ascontiguousarray(rec).tobytes()
+    # Fill the message's own array('B') buffer (assigning bytes would make the message copy them again).
+    rec = np.ascontiguousarray(rec)
+    buf = array.array("B", b"\0") * rec.nbytes
+    if rec.nbytes:
+        np.frombuffer(buf, dtype=np.uint8)[:] = rec.reshape(-1).view(np.uint8)
+    out.data = buf
     return out
 
 
@@ -440,8 +447,9 @@ class XmetroNode(Node):
 
         self._work_group = MutuallyExclusiveCallbackGroup()
         self._srv_group = ReentrantCallbackGroup()
-        self.pub_dev = self.create_publisher(PointCloud2, "~/deviations", output_qos())
-        self.pub_corr = self.create_publisher(PointCloud2, "~/corrected", output_qos())
+        # Clouds: a short writer history (each 180k-point output is ~10 MB; reliable writers keep `depth` samples).
+        self.pub_dev = self.create_publisher(PointCloud2, "~/deviations", output_qos(2))
+        self.pub_corr = self.create_publisher(PointCloud2, "~/corrected", output_qos(2))
         self.pub_quality = self.create_publisher(ScanQuality, "~/quality", output_qos())
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", output_qos())
         self.sub_scan = self.create_subscription(PointCloud2, "scan", self._on_scan,
@@ -559,6 +567,16 @@ class XmetroNode(Node):
         super().destroy_node()
 
 
+def _limit_malloc_arenas(n: int = 2) -> None:
+    """glibc: at most ``n`` malloc arenas (as MALLOC_ARENA_MAX=n) so worker threads do not grow the RSS."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").mallopt(-8, int(os.environ.get("MALLOC_ARENA_MAX", n)))  # M_ARENA_MAX = -8
+    except (OSError, AttributeError, ValueError):
+        pass
+
+
 def main(args: list[str] | None = None) -> int:
     """Console script ``xmetro_node`` (``--ros-args --params-file config/xmetro.yaml`` etc.)."""
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
@@ -566,6 +584,7 @@ def main(args: list[str] | None = None) -> int:
     from .ros_env import apply_ros_env
 
     apply_ros_env()
+    _limit_malloc_arenas()
     rclpy.init(args=args)
     node = None
     try:

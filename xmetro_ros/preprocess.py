@@ -423,7 +423,7 @@ def prepare_scan(
     than ``cfg.min_points`` points are left."""
     cfg = cfg or PreprocessConfig()
     scanner = scanner or ScannerModel.load()
-    pts_all = np.asarray(scan.points, dtype=np.float64)
+    pts_all = np.asarray(scan.points)  # float32 from a ROS cloud or float64: kept as is, cast where needed
     flat = pts_all.reshape(-1, 3)
     if len(flat) == 0:
         raise PreprocessError("empty point cloud")
@@ -453,7 +453,7 @@ def prepare_scan(
         for j, c in enumerate((nx, ny, nz)):
             normals[:, j] = c.reshape(-1)[index]
         quality = q.reshape(-1)[index]
-        points = flat[index]
+        points = flat[index].astype(np.float64, copy=False)
     else:
         vidx = np.flatnonzero(valid)
         n_valid = len(vidx)
@@ -462,7 +462,7 @@ def prepare_scan(
         index = vidx[keep] if remove else vidx
         if len(index) < cfg.min_points:
             raise PreprocessError(f"only {len(index)} points left after outlier removal (need {cfg.min_points})")
-        points = flat[index]
+        points = flat[index].astype(np.float64, copy=False)
         normals, quality = estimate_normals(points, radius_mm=cfg.normal_radius_mm, max_nn=cfg.max_nn, toward=None)
     geom = point_geometry(points, scan.pose, scanner.baseline_mm, dtype=np.float32)
     # Orient toward the laser source (outward on the lit side of a closed artifact); undefined normals → L, q = 0.

@@ -203,7 +203,9 @@ class ScanHandler:
         flags[~valid] |= fl.FLAG_INVALID_POINT
         flags[np.asarray(prepared.outlier, dtype=np.int64)] |= fl.FLAG_OUTLIER
         g = prepared.geometry
-        kept_flags = fl.angle_flags(prepared.normals, g.L, g.V, p.grazing_incidence_deg, p.grazing_view_deg)
+        # N·L and N·V are the features' shared intermediates (already computed when the model uses Inc/ViewAng).
+        kept_flags = fl.angle_flags(prepared.normals, g.L, g.V, p.grazing_incidence_deg, p.grazing_view_deg,
+                                    cos_i=ctx.n_dot_l(), cos_v=ctx.n_dot_v())
         lo, hi = self.model.domain
         kept_flags |= fl.domain_flags(X, lo, hi, p.domain_margin)
         kept_flags[np.asarray(prepared.normal_quality) < p.normal_quality_min] |= fl.FLAG_UNRELIABLE_NORMAL
