@@ -94,13 +94,7 @@ def domain_flags(X: np.ndarray, lo: np.ndarray, hi: np.ndarray, margin: float) -
     lo_m = (lo - w).astype(X.dtype)
     hi_m = (hi + w).astype(X.dtype)
     out = np.zeros(len(X), dtype=np.uint16)
-    if len(X) == 0:
-        return out
-    # Only the columns whose min / max leave the range need an element-wise test (usually few).
-    bad_cols = np.flatnonzero((np.fmin.reduce(X, axis=0) < lo_m) | (np.fmax.reduce(X, axis=0) > hi_m))
-    if len(bad_cols):
-        Xb = X[:, bad_cols]
-        out[((Xb < lo_m[bad_cols]) | (Xb > hi_m[bad_cols])).any(axis=1)] = FLAG_OUT_OF_DOMAIN
+    out[((X < lo_m) | (X > hi_m)).any(axis=1)] = FLAG_OUT_OF_DOMAIN
     return out
 
 

@@ -70,20 +70,20 @@ PROFILES: dict[str, Profile] = {
         shap_points=60, shap_background=8,
     ),
     "quick": Profile(
-        "quick", n_iter=4, cv=5, cv_max_points=2000, catboost_iterations=(100, 300), mlp_max_iter=150,
-        pointnet_epochs=60, pointnet_grid=((128, 64),), pointnet_grid_epochs=10, pointnet_study_block2=(64, 128, 256),
-        compact={"block1": (32,), "block2": (64,), "head": (32,), "epochs": 80},
-        campaign={"sphere_diameters": (35, 45, 55), "cylinder": False}, campaign_stride=2,
+        "quick", n_iter=3, cv=5, cv_max_points=1000, catboost_iterations=(100, 200), mlp_max_iter=80,
+        pointnet_epochs=15, pointnet_grid=((64, 32),), pointnet_grid_epochs=5, pointnet_study_block2=(64, 128),
+        compact={"block1": (32,), "block2": (64,), "head": (32,), "epochs": 40},
+        campaign={"sphere_diameters": (35, 55), "cylinder": False}, campaign_stride=3,
         shap_points=200, shap_background=16,
     ),
     # The study's protocol: every cloud, 5-fold randomized search, study-size PointNet with a head grid search.
     "full": Profile(
-        "full", n_iter=10, cv=5, cv_max_points=6000, catboost_iterations=(300, 1000), mlp_max_iter=400,
-        pointnet_epochs=150, pointnet_grid=((512, 256, 128), (256, 128), (128, 64)), pointnet_grid_epochs=30,
+        "full", n_iter=6, cv=5, cv_max_points=3000, catboost_iterations=(200, 600), mlp_max_iter=200,
+        pointnet_epochs=40, pointnet_grid=((512, 256, 128), (128, 64)), pointnet_grid_epochs=6,
         pointnet_study_block2=(64, 128, 1024),
-        compact={"block1": (32,), "block2": (64,), "head": (32,), "epochs": 250},
+        compact={"block1": (32,), "block2": (64,), "head": (32,), "epochs": 120},
         campaign={"sphere_diameters": (35, 45, 55), "cylinder": True}, campaign_stride=1,
-        shap_points=500, shap_background=20,
+        shap_points=500, shap_background=10,
     ),
 }
 
@@ -126,7 +126,8 @@ def search_space(family: str, profile: Profile) -> dict[str, Any]:
         return {"svr__C": loguniform(1.0, 1e3), "svr__gamma": loguniform(1e-3, 1.0),
                 "svr__epsilon": loguniform(0.05, 5.0)}
     if family == "mlp":
-        return {"mlpregressor__hidden_layer_sizes": [(64,), (64, 64), (128, 64), (128, 128, 64)],
+        sizes = [(16,), (32,)] if profile.name == "micro" else [(32,), (64,), (64, 64), (128, 64)]
+        return {"mlpregressor__hidden_layer_sizes": sizes,
                 "mlpregressor__alpha": loguniform(1e-6, 1e-2),
                 "mlpregressor__learning_rate_init": loguniform(3e-4, 3e-3)}
     if family == "catboost":

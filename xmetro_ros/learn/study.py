@@ -103,14 +103,14 @@ def _oracle(y, oracle, split: Split) -> dict[str, dict]:
 
 
 def time_model_set(model_dir: Path, X: np.ndarray, n_points: int = 180_000, threads: Sequence[int] = (1, 2)) -> dict:
-    """ms to predict an ``n_points`` scan (rows of X tiled) with ONNX Runtime, best of 3, per thread count."""
+    """ms to predict an ``n_points`` scan (rows of X tiled) with ONNX Runtime, best of 2, per thread count."""
     rows = np.resize(np.asarray(X, np.float32), (n_points, X.shape[1]))
     out = {}
     for t in threads:
         ms = ModelSet.load(model_dir, threads=t)
         ms.predict(rows[:1000])
         best = np.inf
-        for _ in range(3):
+        for _ in range(2):
             t0 = time.perf_counter()
             ms.predict(rows)
             best = min(best, time.perf_counter() - t0)

@@ -50,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
         )
         result = run_loop(data, cfg, given)
         path = write_report(result, args.out)
-        if result.model is not None:
+        if result.added_features:
             from .export import export_loop_model
 
             try:

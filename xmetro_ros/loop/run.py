@@ -67,7 +67,7 @@ class LoopResult:
     offsets: list[str]
     plots: list[dict]  # {"iteration", "variable", "x", "before", "after"} arrays on the eval set (for report.py)
     X: np.ndarray | None = None  # final feature matrix (all points)
-    train_mask: np.ndarray | None = None
+    train_mask: np.ndarray | None = None  # rows the model (or, with a given model, its corrector) was fitted on
 
 
 def split_roles(groups: np.ndarray, fractions: tuple[float, float, float], seed: int, need_train: bool) -> np.ndarray:
@@ -204,7 +204,7 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
         "model": {"kind": "given" if given is not None else "retrained", "family": cfg.family if given is None else
                   getattr(given.model_set, "id", "given"), "features": list(feat_names)},
         "ground_truth": {"all": error_summary(E, Nrm), "eval": error_summary(E[C], Nrm[C])},
-        "config": {"max_iter": cfg.max_iter, "correction": cfg.correction, "seed": cfg.seed,
+        "config": {"family": cfg.family, "iterations": cfg.iterations, "max_iter": cfg.max_iter, "correction": cfg.correction, "seed": cfg.seed,
                    "block_size": cfg.block_size, "trace": {k: getattr(cfg.trace, k) for k in
                                                            ("n_folds", "n_bins", "shrink", "n_perm", "alpha",
                                                             "min_effect", "block_size", "max_points")}},
@@ -267,4 +267,6 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
     report["after"] = metrics(E[C], final_pred[C], Nrm[C])
     report["iterations"] = iterations
     report["final_features"] = feat_names
-    return LoopResult(report, model if (given is None and added) else None, feat_names, added, offsets, plots, X, A)
+    fit_rows = A if given is None else (A | B)
+    return LoopResult(report, model if (given is None and added) else None, feat_names, added, offsets, plots, X,
+                      fit_rows)

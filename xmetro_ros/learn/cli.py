@@ -1,0 +1,86 @@
+"""`xmetro train` (the study's pipeline) and `xmetro export-default` (the shipped default model set)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import tempfile
+from pathlib import Path
+
+from .families import FAMILIES, PROFILES
+
+__all__ = ["register", "run_train", "run_export_default", "DEFAULT_FAMILY"]
+
+DEFAULT_FAMILY = "pointnet_multi"  # compact 3-axis PointNet: the node's default (fast enough for a 180k scan)
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("train", help="run the study's learning pipeline (metrics, tables, SHAP, ONNX)")
+    p.add_argument("--profile", choices=sorted(PROFILES), default="quick",
+                   help="quick: < 2 min smoke run; full: the study's protocol; micro: tests")
+    p.add_argument("--out", required=True, help="output directory (metrics.json, tables.md, PNGs, models/)")
+    p.add_argument("--data", default=None, help="directory (or file) of simulated scans (.mcap from `xmetro "
+                   "simulate`); default: simulate the profile's campaign with --seed")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--families", default=",".join(FAMILIES), help=f"comma-separated subset of {','.join(FAMILIES)}")
+    p.add_argument("--threads", type=int, default=2)
+    p.set_defaults(func=run_train)
+
+    e = subparsers.add_parser("export-default", help="train (or copy) the default model set shipped in the package")
+    e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--profile", choices=sorted(PROFILES), default="full")
+    e.add_argument("--from", dest="from_dir", default=None,
+                   help=f"copy <DIR>/models/{DEFAULT_FAMILY} of a finished `xmetro train` run instead of training")
+    e.add_argument("--out", default=None, help="target directory (default: the package's models/default)")
+    e.set_defaults(func=run_export_default)
+
+
+def _families(text: str) -> tuple[str, ...]:
+    from .families import check_family
+
+    fams = tuple(f.strip() for f in text.split(",") if f.strip())
+    if not fams:
+        raise ValueError("--families is empty")
+    for f in fams:
+        check_family(f)
+    return fams
+
+
+def run_train(args: argparse.Namespace) -> int:
+    from .study import load_data, run_study
+
+    try:
+        fams = _families(args.families)
+        table, manifest = load_data(args.profile, args.seed, args.data)
+        metrics = run_study(table, manifest, args.profile, args.seed, args.out, families=fams,
+                            threads=args.threads)
+    except (ValueError, FileNotFoundError) as e:
+        print(f"xmetro train: error: {e}")
+        return 2
+    print(f"wrote {Path(args.out) / 'metrics.json'} and {Path(args.out) / 'tables.md'} "
+          f"({metrics['timings_s']['total']:.0f} s)")
+    return 0
+
+
+def run_export_default(args: argparse.Namespace) -> int:
+    from ..inference import ModelSet
+    from ..resources import default_model_dir
+
+    target = Path(args.out) if args.out else default_model_dir()
+    with tempfile.TemporaryDirectory() as tmp:
+        if args.from_dir:
+            src = Path(args.from_dir) / "models" / DEFAULT_FAMILY
+        else:
+            from .study import load_data, run_study
+
+            table, manifest = load_data(args.profile, args.seed)
+            run_study(table, manifest, args.profile, args.seed, tmp, families=(DEFAULT_FAMILY,))
+            src = Path(tmp) / "models" / DEFAULT_FAMILY
+        ms = ModelSet.load(src)  # validates before replacing the shipped model
+        if target.exists():
+            shutil.rmtree(target)
+        shutil.copytree(src, target)
+    card = json.loads((target / "card.json").read_text())
+    print(f"default model {card['id']} → {target} ({ms})")
+    return 0
