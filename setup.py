@@ -12,11 +12,11 @@ import os
 import shutil
 import subprocess
 import sys
+from distutils.command.install_data import install_data
 from pathlib import Path
 
 from setuptools import Distribution, setup
 from setuptools.command.build_py import build_py
-from distutils.command.install_data import install_data
 
 ROOT = Path(__file__).resolve().parent
 PKG = "xmetro_ros"

@@ -44,7 +44,7 @@ from xmetro_ros.artifacts import Sphere  # noqa: E402
 from xmetro_ros.scanner import ScanSettings  # noqa: E402
 
 BIG = (Sphere(27.5, np.zeros(3)), ScanSettings(16.0, 5.0, 0.5))     # ~180k valid points (study max: 180k)
-SMALL = (Sphere(17.5, np.zeros(3)), ScanSettings(8.0, 3.0, 0.5))    # ~16k valid points (study min: 16k)
+SMALL = (Sphere(17.5, np.zeros(3)), ScanSettings(6.0, 3.0, 0.5))    # ~16k valid points (study min: 16k)
 
 
 def _sim(spec, stamp_ns=0, seed=0):

@@ -62,6 +62,7 @@ def make_bag(path: Path, n_scans: int, n_points: int, settings_every_scan: bool,
 
 
 def consumer_factory(ctx):
+    from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.node import Node
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import PointCloud2
@@ -81,6 +82,10 @@ def consumer_factory(ctx):
         pub.publish(q)
 
     node.create_subscription(ScannerSettings, "scanner_settings", lambda m: None, qos)
+    # Like xmetro_node: /diagnostics periodically (the replay takes its first one as proof of matching).
+    diag = node.create_publisher(DiagnosticArray, "/diagnostics", QoSProfile(depth=10,
+                                 reliability=ReliabilityPolicy.RELIABLE))
+    node.create_timer(0.2, lambda: diag.publish(DiagnosticArray()))
     node.create_subscription(PointCloud2, "scan", on_scan, qos)
     return node
 
@@ -109,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
                 stamps: list[float] = []
                 with NodeSpinner(consumer_factory) as sp:
                     res = replay_bag(bag, discovery_timeout=30.0, answer_timeout=30.0,
-                                     log=lambda s: stamps.append(time.monotonic()), **kw)
+                                     log=lambda s: s.startswith("#") and stamps.append(time.monotonic()), **kw)
                     received = sp.node.received
                 run = {
                     "wall_s_incl_discovery": round(res.wall_s, 3),

@@ -22,7 +22,9 @@ def test_demo_end_to_end(tmp_path):
     golden = json.loads((ROOT / "bags" / "golden" / "golden.json").read_text())
     diffs = compare_outputs(res.outputs, read_outputs(ROOT / "bags" / "golden" / "demo.mcap"),
                             Tolerance.from_dict(golden["tolerance"]), clouds=("deviations",))
-    assert not diffs, "\n".join(diffs[:20])
+    assert not diffs, ("live outputs differ from bags/golden beyond the stated tolerance (if the processing changed "
+                       "on purpose: `python tools/make_bags.py --golden-only`, then review golden.json):\n"
+                       + "\n".join(diffs[:20]))
     # The worst region is the largest predicted deviation of the scan with the largest p95.
     assert res.worst is not None and res.worst["max_dev_mm"] > 0
     ex = res.explain

@@ -39,9 +39,10 @@ def test_recommend_region(judged):
     model, scanner, scan, res = judged
     pts = np.asarray(res.prepared.points)
     rows = np.flatnonzero(np.linalg.norm(pts - [0, 0, 17.5], axis=1) < 8.0)
-    kw = dict(max_points=500, max_tilt=0.25, tilt_steps=3, max_turn=1.2, turn_steps=3, min_coverage=0.95)
+    kw = dict(max_points=150, max_tilt=0.25, tilt_steps=3, max_turn=1.2, turn_steps=3, min_coverage=0.95)
     rec = recommend(model, res.context, rows, res.features, scan.pose, scanner, scan.settings, **kw)
-    assert rec.n_region == len(rows) and rec.n_points == 500 and rec.n_orientations == 27 and rec.n_settings == 27
+    assert rec.n_region == len(rows) and rec.n_points == 150 and rec.n_orientations == 27 and rec.n_settings == 27
+    assert rec.n_orientations_evaluated == 27 and "time budget" not in rec.note
     assert rec.ranked[0] is rec.best
     assert [c.score_mm for c in rec.ranked] == sorted(c.score_mm for c in rec.ranked)
     assert len(rec.ranked) == 27 * rec.n_orientations_kept
@@ -53,7 +54,7 @@ def test_recommend_region(judged):
     assert same[0].p95_mm == pytest.approx(rec.before.p95_mm, rel=1e-5)
     assert rec.best.p95_mm <= same[0].p95_mm
     # the head pivots about the region centroid: the centroid keeps its head-frame coordinates
-    sub_rows = rows[np.linspace(0, len(rows) - 1, 500).round().astype(int)]
+    sub_rows = rows[np.linspace(0, len(rows) - 1, 150).round().astype(int)]
     centroid = pts[sub_rows].mean(axis=0)
     for c in rec.ranked[:5]:
         np.testing.assert_allclose(c.pose.to_head(centroid), scan.pose.to_head(centroid), atol=1e-9)
@@ -65,6 +66,11 @@ def test_recommend_region(judged):
     sub = subset_context(res.context, sub_rows)
     cov = coverage_mask(sub.with_pose(rec.best.pose, scanner), 75.0, 75.0)
     assert cov.mean() == pytest.approx(rec.best.coverage)
+    # a spent time budget stops the search after the current orientation, and says so
+    rec3 = recommend(model, res.context, rows, res.features, scan.pose, scanner, scan.settings,
+                     **{**kw, "max_points": 50}, max_seconds=0.0)
+    assert rec3.n_orientations_evaluated == 1 and "time budget" in rec3.note
+    assert all(np.allclose(c.rotation, np.eye(3)) for c in rec3.ranked) and len(rec3.ranked) == 27
 
 
 def test_recommend_refuses(judged):

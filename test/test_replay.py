@@ -45,7 +45,9 @@ def test_regression_bag_through_live_node_matches_golden(live_node, tmp_path):
     ref = read_outputs(BAGS / "golden" / "regression.mcap")
     assert all(o.deviations is not None and o.corrected is not None for o in live)
     diffs = compare_outputs(live, ref, Tolerance.from_dict(golden["tolerance"]), clouds=("deviations",))
-    assert not diffs, "\n".join(diffs[:20])
+    assert not diffs, ("live outputs differ from bags/golden beyond the stated tolerance (if the processing changed "
+                       "on purpose: `python tools/make_bags.py --golden-only`, then review golden.json):\n"
+                       + "\n".join(diffs[:20]))
     # The recording also holds what was replayed, message for message.
     topics = BagReader(rec).topics()
     assert {"/scan", "/scanner_settings", "/xmetro_node/quality", "/xmetro_node/deviations"} <= set(topics)

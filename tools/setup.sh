@@ -29,4 +29,5 @@ PIP=("$VENV/bin/pip" install -q -c tools/constraints.txt)
 "${PIP[@]}" -r tools/build-requirements.txt
 "${PIP[@]}" --no-build-isolation -e '.[test]'
 "$VENV/bin/python" -c "import xmetro_ros.msg, xmetro_ros.srv, rclpy, open3d, onnxruntime, torch; \
-assert not torch.cuda.is_available() or True; print('setup: ok, torch', torch.__version__)"
+assert torch.version.cuda is None, 'a CUDA build of torch was installed: CPU only'; \
+print('setup: ok, torch', torch.__version__)"

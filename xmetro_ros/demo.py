@@ -51,6 +51,7 @@ class DemoResult:
         self.recommend: dict[str, Any] | None = None
         self.report: Path | None = None
         self.timings: dict[str, float] = {}
+        self.labels: list[str] = []
         self.errors: list[str] = []
 
     @property
@@ -205,8 +206,8 @@ def _report_scans(bag: Path, outputs: list[Any]) -> list[Any]:
         label = f"stamp {o.stamp_ns / 1e9:.3f} s"
         if src is not None:
             art = src.artifact.to_dict() if src.artifact is not None else {}
-            label = (f"{art.get('type', 'scan')} r={art.get('radius', '?')} mm, {src.settings.label()}"
-                     if art else src.settings.label())
+            label = (f"{art.get('kind', 'artifact')} Ø{2 * float(art.get('radius', 0)):g} mm, "
+                     f"{src.settings.label()}" if art else src.settings.label())
         rs = ReportScan(index=i, label=label, quality=o.summary_dict())
         if o.deviations is not None:
             pts, dev, _ = deviation_arrays(o.deviations)
@@ -279,8 +280,9 @@ def run_demo(
         node.stop()
         (out_dir / "node.log").write_text("\n".join(node.lines) + "\n")
     t = time.monotonic()
-    summary = _summary_lines(res)
     scans = _report_scans(bag, res.outputs) if res.outputs else []
+    res.labels = [s.label for s in scans]
+    summary = _summary_lines(res)
     res.report = write_report(
         out_dir / "report.html", scans, explain=res.explain, recommend=res.recommend, summary_lines=summary,
         meta={"bag": str(bag), "model": res.outputs[0].quality.model_id if res.outputs else "?",
@@ -297,10 +299,11 @@ def _summary_lines(res: DemoResult) -> list[str]:
         r = res.replay
         lines.append(f"replayed {r.scans_sent} scans ({r.settings_sent} settings) in {r.wall_s:.1f} s; "
                      f"{r.answered} judged")
-        for o in res.outputs:
+        for i, o in enumerate(res.outputs):
             q = o.summary_dict()
             vn = ("OK", "WARN", "RESCAN", "ERROR")[q["verdict"]]
-            lines.append(f"  scan @{q['stamp_ns'] / 1e9:.0f}s: {vn:<6s} usable {q['usable_fraction']:.2f}, "
+            label = res.labels[i] if i < len(res.labels) else f"@{q['stamp_ns'] / 1e9:.0f}s"
+            lines.append(f"  #{i} {label}: {vn:<6s} usable {q['usable_fraction']:.2f}, "
                          f"p95 |e| x/y/z = " + "/".join(f"{v * 1e3:.1f}" for v in q["p95_abs_error_mm"]) + " µm"
                          + (" (settings defaulted)" if q["settings_defaulted"] else ""))
     if res.worst is not None:

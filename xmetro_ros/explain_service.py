@@ -34,7 +34,8 @@ class JudgedScan:
         n_points: points in the (possibly decimated) cloud, = width × height.
         index: (M,) flat indices of the processed (kept) points.
         points: (M, 3) mm those points.
-        features: (M, F) float32 model features; predictions (M, 3) mm.
+        features: (M, F) float32 model features; predictions (M, 3) mm (stored as float32: only their
+            finiteness is used).
         context: features.FeatureContext of those points (for the recommender).
         settings, pose, scanner_id, model_id: how it was taken and judged.
     """
@@ -53,10 +54,22 @@ class JudgedScan:
     model_id: str
 
     def __post_init__(self) -> None:
-        # Only rows with a finite prediction can be explained.
-        self.ok_rows = np.flatnonzero(np.isfinite(self.predictions).all(axis=1))
-        self.row_of = np.full(self.n_points, -1, dtype=np.int64)
-        self.row_of[np.asarray(self.index, dtype=np.int64)[self.ok_rows]] = self.ok_rows
+        # Kept for every judged scan in the history: only what the services need, compactly.
+        self.predictions = np.asarray(self.predictions, dtype=np.float32)
+        self.index = np.asarray(self.index, dtype=np.int64)
+
+    @property
+    def ok_rows(self) -> np.ndarray:
+        """Rows with a finite prediction (only those can be explained)."""
+        return np.flatnonzero(np.isfinite(self.predictions).all(axis=1))
+
+    @property
+    def row_of(self) -> np.ndarray:
+        """(n_points,) row of each flat cloud index, -1 where there is no explainable point."""
+        ok = self.ok_rows
+        row_of = np.full(self.n_points, -1, dtype=np.int64)
+        row_of[self.index[ok]] = ok
+        return row_of
 
 
 class ScanHistory:
@@ -106,6 +119,7 @@ def select_rows(judged: JudgedScan, indices: np.ndarray, center_mm: np.ndarray |
     point: when more than ``cap``, an evenly spaced deterministic subset of ``cap`` rows is taken (said in the note).
     """
     indices = np.asarray(indices, dtype=np.int64)
+    ok_rows = judged.ok_rows
     if len(indices):
         if len(indices) > cap:
             raise ServiceError(f"{len(indices)} indices requested, more than the cap of {cap} points")
@@ -120,12 +134,12 @@ def select_rows(judged: JudgedScan, indices: np.ndarray, center_mm: np.ndarray |
     if radius_mm < 0 or not np.isfinite(radius_mm):
         raise ServiceError(f"region radius must be >= 0, got {radius_mm}")
     if radius_mm > 0:
-        d2 = np.sum((judged.points[judged.ok_rows] - np.asarray(center_mm, dtype=np.float64)) ** 2, axis=1)
-        rows = judged.ok_rows[d2 <= radius_mm * radius_mm]
+        d2 = np.sum((judged.points[ok_rows] - np.asarray(center_mm, dtype=np.float64)) ** 2, axis=1)
+        rows = ok_rows[d2 <= radius_mm * radius_mm]
         if len(rows) == 0:
             raise ServiceError(f"the region (radius {radius_mm * 1e-3:g} m) holds no processed point")
     else:
-        rows = judged.ok_rows
+        rows = ok_rows
     note = ""
     if len(rows) > cap:
         note = f"region has {len(rows)} points: explained an evenly spaced subset of {cap}"

@@ -67,8 +67,13 @@ class VerdictThresholds:
 
 def flag_counts(flags: np.ndarray) -> list[int]:
     """Number of points with each flag bit set, in bit order."""
-    f = np.asarray(flags, dtype=np.uint16)
-    return [int(np.count_nonzero(f & b)) for b in FLAG_BITS]
+    f = np.asarray(flags, dtype=np.uint16).reshape(-1)
+    if len(f) == 0:
+        return [0] * len(FLAG_BITS)
+    # One pass: histogram of the flag words, then per bit the sum over the words that have it.
+    hist = np.bincount(f, minlength=int(f.max()) + 1)
+    words = np.arange(len(hist))
+    return [int(hist[(words & b) != 0].sum()) for b in FLAG_BITS]
 
 
 def angle_flags(normals: np.ndarray, L: np.ndarray, V: np.ndarray, grazing_incidence_deg: float,
@@ -93,8 +98,14 @@ def domain_flags(X: np.ndarray, lo: np.ndarray, hi: np.ndarray, margin: float) -
     w = (hi - lo) * float(margin)
     lo_m = (lo - w).astype(X.dtype)
     hi_m = (hi + w).astype(X.dtype)
+    m = X < lo_m
+    m |= X > hi_m
     out = np.zeros(len(X), dtype=np.uint16)
-    out[((X < lo_m) | (X > hi_m)).any(axis=1)] = FLAG_OUT_OF_DOMAIN
+    if 0 < m.shape[1] < 256:
+        # "any over the row" as a uint8 matrix-vector product: ~2x faster than any(axis=1) on few columns
+        out[(m.view(np.uint8) @ np.ones(m.shape[1], np.uint8)) > 0] = FLAG_OUT_OF_DOMAIN
+    else:
+        out[m.any(axis=1)] = FLAG_OUT_OF_DOMAIN
     return out
 
 

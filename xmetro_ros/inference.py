@@ -143,7 +143,7 @@ class ModelSet:
             from .features import required_fields
 
             return set(required_fields(self.feature_names))
-        except ImportError:
+        except (ImportError, KeyError, ValueError):  # unknown features: check_features names them
             return {n[len("field_"):] for n in self.feature_names if n.startswith("field_")}
 
     def check_features(self, registry: Any) -> None:
@@ -183,15 +183,18 @@ class ModelSet:
         Rows with a non-finite feature get NaN (they are also kept out of every PointNet set).
         """
         X = self._check_X(X)
-        out = np.full((len(X), 3), np.nan)
         ok = np.all(np.isfinite(X), axis=1)
+        if ok.all():
+            return self.predict_batch(X[None])[0]
+        out = np.full((len(X), 3), np.nan)
         if ok.any():
             out[ok] = self.predict_batch(X[ok][None])[0]
         return out
 
     def predict_batch(self, Xq: np.ndarray) -> np.ndarray:
         """(Q, P, F) → (Q, P, 3): Q versions of the same P-point cloud, each predicted as ``predict`` would
-        (same set partition for every version). Used by the SHAP explainer. Rows must be finite."""
+        (same set partition for every version). Used by the SHAP explainer and the recommender. Rows must be
+        finite."""
         Xq = np.asarray(Xq, dtype=np.float32)
         q, p, f = Xq.shape
         out = np.empty((q, p, 3))
@@ -201,15 +204,20 @@ class ModelSet:
             if m.kind == "points":
                 y = m.session.run(None, {"X": Xq.reshape(q * p, f)})[0]
                 out[:, :, m.axes[0]] = y.reshape(q, p)
+                continue
+            idx, _ = _partition(p, self.set_size, self.partition_seed)
+            sets = Xq[:, idx].reshape(-1, self.set_size, f)  # (Q*K, n, F)
+            ys = np.empty((len(sets), self.set_size, len(m.axes)), np.float32)
+            for i in range(0, len(sets), _SET_CHUNK):
+                ys[i : i + _SET_CHUNK] = m.session.run(None, {"X": sets[i : i + _SET_CHUNK]})[0]
+            # Real entries are the first p of each version's flattened sets (only the last set is padded).
+            flat = ys.reshape(q, -1, len(m.axes))[:, :p]
+            perm = idx.reshape(-1)[:p]
+            if len(m.axes) == 3:
+                out[:, perm] = flat
             else:
-                idx, real = _partition(p, self.set_size, self.partition_seed)
-                sets = Xq[:, idx].reshape(-1, self.set_size, f)  # (Q*K, n, F)
-                ys = np.concatenate(
-                    [m.session.run(None, {"X": sets[i : i + _SET_CHUNK]})[0] for i in range(0, len(sets), _SET_CHUNK)]
-                ).reshape(q, len(idx), self.set_size, -1)
-                res = np.empty((q, p, ys.shape[-1]))
-                res[:, idx[real]] = ys[:, real]
-                out[:, :, list(m.axes)] = res
+                for j, a in enumerate(m.axes):
+                    out[:, perm, a] = flat[:, :, j]
         return out
 
     def __repr__(self) -> str:

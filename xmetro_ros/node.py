@@ -45,7 +45,7 @@ from .diagnostics import DiagnosticsState
 from .explain_service import JudgedScan, ScanHistory, ServiceError, axes_from_mask, explain_rows, select_rows
 from .geometry import HeadPose
 from .msg import ScannerSettings, ScanQuality, SettingsCandidate
-from .scan_handler import HandlerParams, ScanError, ScanHandler, decimation_index
+from .scan_handler import HandlerParams, ScanError, ScanHandler
 from .scanner import ScannerModel, ScanSettings, SettingsError
 from .srv import Explain, RecommendSettings
 
@@ -207,7 +207,7 @@ class XmetroCore:
 
     def judge(self, msg: PointCloud2, t0: float | None = None) -> CoreOutput:
         """Judge one cloud; ``t0`` = monotonic receipt time (for processing_latency). Never raises for bad input."""
-        from .cloud import CloudFormatError, dtype_from_fields, validate_cloud
+        from .cloud import CloudFormatError, validate_cloud
         from .ros_convert import cloud_to_scan
 
         t0 = time.monotonic() if t0 is None else t0
@@ -237,7 +237,15 @@ class XmetroCore:
         except Exception as e:  # noqa: BLE001 - the node must keep running
             return self._error(q, "INTERNAL", f"{type(e).__name__}: {e}", n, t0)
 
-        # Outputs.
+        try:
+            return self._outputs(msg, q, res, entry, stamp_ns, t0)
+        except Exception as e:  # noqa: BLE001 - the node must keep running
+            return self._error(q, "INTERNAL", f"encoding the outputs failed: {type(e).__name__}: {e}", n, t0)
+
+    def _outputs(self, msg: PointCloud2, q: ScanQuality, res: Any, entry: _SettingsEntry, stamp_ns: int,
+                 t0: float) -> CoreOutput:
+        from .cloud import dtype_from_fields, xyz_fields
+
         qd = res.quality
         q.verdict = int(qd["verdict"])
         q.error_code = ScanQuality.ERROR_NONE
@@ -249,13 +257,13 @@ class XmetroCore:
         q.mean_abs_error = [float(v) * 1e-3 for v in qd["mean_abs_error_mm"]]
         q.p95_abs_error = [float(v) * 1e-3 for v in qd["p95_abs_error_mm"]]
         q.usable_fraction = float(qd["usable_fraction"])
-        decimated = bool(qd["decimated"])
-        keep = decimation_index(n, int(self.values["max_points"])) if decimated else None
-        out_h, out_w = (1, len(keep)) if decimated else (int(msg.height), int(msg.width))
-        dev_mm = res.deviations
-        meas_m = res.scan.points.reshape(-1, 3).astype(np.float32) * np.float32(1e-3)
-        dev_m = (dev_mm * 1e-3).astype(np.float32)
-        dnorm = np.linalg.norm(dev_m, axis=1).astype(np.float32)
+        keep = res.kept
+        out_h, out_w = (1, len(keep)) if keep is not None else (int(msg.height), int(msg.width))
+        # x, y, z exactly as received (float32 metres), one point per (kept) input point.
+        xyz, _ = xyz_fields(msg)
+        meas_m = np.asarray(xyz if keep is None else xyz[keep], dtype=np.float32)
+        dev_m = (res.deviations * 1e-3).astype(np.float32)
+        dnorm = np.sqrt(np.einsum("ij,ij->i", dev_m, dev_m))
         dev_cloud = _create_cloud(msg.header, {
             "x": meas_m[:, 0], "y": meas_m[:, 1], "z": meas_m[:, 2],
             "dx": dev_m[:, 0], "dy": dev_m[:, 1], "dz": dev_m[:, 2], "dnorm": dnorm, "flags": res.flags,
@@ -264,7 +272,7 @@ class XmetroCore:
         self.history.add(JudgedScan(
             stamp_ns=stamp_ns, frame_id=msg.header.frame_id, n_points=out_h * out_w,
             index=np.asarray(res.prepared.index), points=np.asarray(res.prepared.points), features=res.features,
-            predictions=res.predictions, context=res.context, settings=entry.settings, pose=entry.pose,
+            predictions=res.predictions, context=_lean_context(res.context), settings=entry.settings, pose=entry.pose,
             scanner_id=self.scanner.id, model_id=self.model_id))
         q.processing_latency = time.monotonic() - t0
         return CoreOutput(q, dev_cloud, corrected, f"scan {stamp_ns}: {qd['verdict_name']} ({qd['message']})")
@@ -339,7 +347,7 @@ class XmetroCore:
                             max_tilt=max_tilt, tilt_steps=int(v["recommend_tilt_steps"]), max_turn=max_turn,
                             turn_steps=int(v["recommend_turn_steps"]),
                             grazing_incidence_deg=v["grazing_incidence_deg"], grazing_view_deg=v["grazing_view_deg"],
-                            min_coverage=v["recommend_min_coverage"])
+                            min_coverage=v["recommend_min_coverage"], max_seconds=v["recommend_max_seconds"])
         except ServiceError as e:
             resp.success = False
             resp.message = str(e)
@@ -378,6 +386,16 @@ class XmetroCore:
                                                p95_abs_error=a.p95_mm * 1e-3, coverage=a.coverage,
                                                score=a.score_mm * 1e-3) for a in rec.ranked[:20]]
         return resp
+
+
+def _lean_context(ctx: Any) -> Any:
+    """The feature context without its cache of intermediates (kept in the scan history: memory)."""
+    from dataclasses import replace
+
+    try:
+        return replace(ctx, _cache={})
+    except TypeError:
+        return ctx
 
 
 def _create_cloud(header: Any, arrays: dict[str, np.ndarray], h: int, w: int) -> PointCloud2:

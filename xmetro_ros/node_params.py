@@ -79,6 +79,8 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("recommend_turn_steps", 3, "steps", "turn values in [-max, max] (odd keeps 0)", 1, 15),
     ParamSpec("recommend_min_coverage", 0.95, "fraction", "discard candidates covering (lit, seen, not grazing) "
               "less of the region than min(this, current coverage)", 0.0, 1.0),
+    ParamSpec("recommend_max_seconds", 10.0, "s", "time budget of one ~/recommend_settings search (the current "
+              "orientation is always evaluated; the answer says when the search was cut short)", 0.1, 600.0),
     ParamSpec("diagnostics_period", 1.0, "s", "period of /diagnostics (also published at once on a level change)",
               0.05, 60.0, read_only=True),
 )

@@ -9,9 +9,14 @@ Two paths:
   cross product of the column and row tangents (NaN-aware central differences); the normal is the normalised
   mean of the raw unit normals over a ``grid_window`` × ``grid_window`` box (a plane-fit-like average) and the
   quality is the length of that mean (1 = full, planar, noise-free window; lower near holes, edges, noise).
-- **Unorganized** (N × 3): open3d statistical outlier removal and KD-tree normal estimation (hybrid radius / max_nn),
-  as in the study, after removing exact duplicate points (real bags hold many; they break the neighbour statistics
-  and make open3d slow). Quality = 1 − nearest-neighbour distance / radius (clipped to [0, 1]).
+- **Unorganized** (N × 3), after removing exact duplicate points (real bags hold many; they break the neighbour
+  statistics and make KD-trees slow). Two selectable methods (``PreprocessConfig.unorganized_method``):
+  ``"knn"`` (default, the live path): ONE k-nearest-neighbour query (scipy cKDTree, queried in the tree's leaf order
+  for cache locality) feeds both steps: statistical outlier removal exactly as open3d defines it, then normals from
+  the covariance of the kept points among the same neighbours (within ``normal_radius_mm``), smallest eigenvector by
+  a closed-form 3×3 symmetric solver; quality = planarity 1 − λ0/λ1 (eigenvalues ascending).
+  ``"open3d"`` (the reference, as in the study): open3d statistical outlier removal and KD-tree normal estimation
+  (hybrid radius / max_nn); quality = 1 − nearest-neighbour distance / radius (clipped to [0, 1]).
 
 Orientation: normals are flipped to have a positive dot product with ``toward`` (per point, e.g. toward the laser
 source, which is outward for the visible side of a closed artifact); without ``toward``, away from the centroid.
@@ -39,7 +44,10 @@ __all__ = [
     "grid_normals",
     "dedupe",
     "prepare_scan",
+    "UNORGANIZED_METHODS",
 ]
+
+UNORGANIZED_METHODS = ("knn", "open3d")
 
 
 class PreprocessError(ValueError):
@@ -51,8 +59,13 @@ class PreprocessConfig:
     """Pre-processing parameters (lengths in mm).
 
     Attributes:
-        nb_neighbors, std_ratio: open3d statistical outlier removal (unorganized path).
-        normal_radius_mm, max_nn: open3d hybrid KD-tree search for normals (unorganized path).
+        nb_neighbors, std_ratio: statistical outlier removal (unorganized path, open3d's definition).
+        normal_radius_mm, max_nn: hybrid radius / neighbour count for normals (unorganized path; max_nn is used by the
+            open3d method).
+        unorganized_method: ``"knn"`` (one shared kNN query, fast; default) or ``"open3d"`` (the reference).
+        knn_normal_neighbors: the knn method's neighbours per normal (the query's k is max(nb_neighbors, this));
+            20 rather than 30 makes the path 10-25 % cheaper at a normal accuracy inside the stated bounds.
+        knn_workers: threads for the kNN query (the live node runs on 2 cores).
         use_grid: use the organized-grid path when the scan is organized.
         grid_window: side of the box window (grid cells, odd) the grid normals are averaged over.
         grid_min_offset_mm: a point is an outlier when its offset from the chords of its grid neighbours (in both
@@ -68,6 +81,9 @@ class PreprocessConfig:
     std_ratio: float = 2.0
     normal_radius_mm: float = 1.5
     max_nn: int = 30
+    unorganized_method: str = "knn"
+    knn_normal_neighbors: int = 20
+    knn_workers: int = 2
     use_grid: bool = True
     grid_window: int = 5
     grid_min_offset_mm: float = 0.05
@@ -75,6 +91,14 @@ class PreprocessConfig:
     grid_scale_window: int = 9
     grid_gap_factor: float = 20.0
     min_points: int = 3
+
+    def __post_init__(self) -> None:
+        if self.unorganized_method not in UNORGANIZED_METHODS:
+            raise PreprocessError(f"unorganized_method must be one of {UNORGANIZED_METHODS}, "
+                                  f"got {self.unorganized_method!r}")
+        if self.knn_normal_neighbors < 3 or self.knn_workers < 1:
+            raise PreprocessError(f"knn_normal_neighbors must be >= 3 and knn_workers >= 1, got "
+                                  f"{self.knn_normal_neighbors}, {self.knn_workers}")
 
 
 @dataclass
@@ -182,17 +206,166 @@ def _o3d_cloud(points: np.ndarray):
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# unorganized path (open3d, as in the study)
+# unorganized path, "knn" method: one shared neighbour query
 
 
-def remove_outliers(points: np.ndarray, nb_neighbors: int = 20, std_ratio: float = 2.0) -> np.ndarray:
-    """open3d statistical outlier removal on (N, 3) finite points (mm). Returns the boolean keep mask (N,).
+def _knn(points: np.ndarray, k: int, workers: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Exact k nearest neighbours of every point among the (distinct, finite) points (U, 3), the point itself
+    included first (distance 0), as open3d's KNN search does. Returns (dist (U, k) float64 mm ascending, idx (U, k)
+    int64 into points, query (U,) int64): row r holds the neighbours of ``points[query[r]]``. The rows come in the
+    tree's leaf order: neighbouring queries then walk the same nodes (2-3× faster than a shuffled order on a 180k
+    cloud), and callers index by ``query`` instead of paying to scatter (U, k) arrays back."""
+    from scipy.spatial import cKDTree
 
-    Exact duplicates are collapsed first (they would be each other's zero-distance neighbours) and share the
-    verdict of their unique point."""
+    # midpoint splits: ~2× faster build than the median-balanced tree, no slower queries on scans (measured)
+    tree = cKDTree(points, leafsize=32, balanced_tree=False)
+    order = np.asarray(tree.indices, dtype=np.int64)
+    d, i = tree.query(points[order], k=k, workers=int(workers))
+    return d.reshape(len(points), k), i.reshape(len(points), k), order  # k = 1 gives 1-D arrays
+
+
+def _sor_keep(dist: np.ndarray, nb_neighbors: int, std_ratio: float) -> np.ndarray:
+    """open3d's statistical outlier removal from sorted kNN distances (U, >= nb_neighbors), self included: mean
+    distance to the nb_neighbors nearest; keep 0 < mean < global mean + std_ratio × std (Bessel), with open3d's
+    bookkeeping (zero means are left out of the sums but counted in the divisor)."""
+    avg = dist[:, :nb_neighbors].mean(axis=1)
+    n = len(avg)
+    pos = avg > 0
+    mean = float(avg[pos].sum()) / n
+    std = float(np.sqrt(((avg[pos] - mean) ** 2).sum() / max(n - 1, 1)))
+    return pos & (avg < mean + std_ratio * std)
+
+
+def _smallest_eigvec_sym3(a00, a01, a02, a11, a12, a22):
+    """Closed-form eigen-decomposition of N symmetric 3×3 matrices given as columns (N,) float64 (trigonometric
+    method, then the eigenvector as the largest cross product of two rows of A − λ0 I; A positive semi-definite,
+    e.g. a covariance). Returns (normal (N, 3)
+    float64 unit, NaN where undefined; λ0, λ1, λ2 ascending (N,))."""
+    scale = a00 + a11 + a22  # a covariance is positive semi-definite: its trace bounds every element
+    s = np.where(scale > 0, scale, 1.0)
+    a00, a01, a02, a11, a12, a22 = (a / s for a in (a00, a01, a02, a11, a12, a22))
+    q = (a00 + a11 + a22) / 3
+    b00, b11, b22 = a00 - q, a11 - q, a22 - q
+    p2 = (b00 * b00 + b11 * b11 + b22 * b22 + 2 * (a01 * a01 + a02 * a02 + a12 * a12)) / 6
+    p = np.sqrt(p2)
+    det = b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = np.clip(np.where(p > 0, det / (2 * p * p2), 0.0), -1.0, 1.0)
+    phi = np.arccos(r) / 3
+    l2 = q + 2 * p * np.cos(phi)
+    l0 = q + 2 * p * np.cos(phi + 2 * np.pi / 3)
+    l1 = 3 * q - l2 - l0
+    r0 = (a00 - l0, a01, a02)
+    r1 = (a01, a11 - l0, a12)
+    r2 = (a02, a12, a22 - l0)
+
+    def cross(u, v):
+        return (u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
+
+    c0, c1, c2 = cross(r0, r1), cross(r0, r2), cross(r1, r2)
+    n0, n1, n2 = (c[0] * c[0] + c[1] * c[1] + c[2] * c[2] for c in (c0, c1, c2))
+    pick0 = (n0 >= n1) & (n0 >= n2)
+    pick1 = ~pick0 & (n1 >= n2)
+    nn = np.sqrt(np.where(pick0, n0, np.where(pick1, n1, n2)))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        inv = 1.0 / np.where(nn > 1e-30, nn, np.nan)
+    normal = np.empty((len(a00), 3))
+    for j in range(3):
+        normal[:, j] = np.where(pick0, c0[j], np.where(pick1, c1[j], c2[j])) * inv
+    return normal, l0 * s, l1 * s, l2 * s
+
+
+def _knn_normals(
+    points: np.ndarray, rows: np.ndarray, dist: np.ndarray, idx: np.ndarray, allowed: np.ndarray, radius_mm: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Normals (R, 3) float32 (NaN where undefined) and planarity quality (R,) float32 of ``points[rows]`` (points
+    (U, 3) mm) from their kNN (dist, idx (R, k) into points), using only the neighbours ``allowed`` (e.g. not
+    outliers, (U,) bool) and within
+    ``radius_mm`` (open3d's hybrid search). Covariance of the neighbour offsets from the query point in float32,
+    column-wise (no small BLAS matmuls); eigenvectors in closed form. Quality = 1 − λ0/λ1 (eigenvalues ascending):
+    1 for a flat, two-dimensional neighbourhood, 0 for an isotropic (noise) or collinear one or < 3 neighbours."""
+    w = allowed[idx]
+    w &= dist <= radius_mm
+    cnt = np.count_nonzero(w, axis=1).astype(np.float64)
+    # unused neighbours point at the query point itself: their offset is 0 and adds nothing to the sums below
+    idx = np.where(w, idx, rows[:, None])
+    pc = points - points.mean(axis=0)
+    g = []
+    for j in range(3):  # offsets of the neighbours from the point (mm, float32)
+        c = pc[:, j].astype(np.float32)
+        gj = c[idx]
+        gj -= c[rows][:, None]
+        g.append(gj)
+    inv = np.divide(1.0, cnt, out=np.zeros_like(cnt), where=cnt > 0)
+    m = [np.einsum("ij->i", g[j]) * inv for j in range(3)]  # float32 sums of small offsets, float64 from here
+
+    def cov(a: int, b: int) -> np.ndarray:
+        return np.einsum("ij,ij->i", g[a], g[b]).astype(np.float64) * inv - m[a] * m[b]
+
+    normal, l0, l1, l2 = _smallest_eigvec_sym3(cov(0, 0), cov(0, 1), cov(0, 2), cov(1, 1), cov(1, 2), cov(2, 2))
+    ok = (cnt >= 3) & (l1 > 1e-12 * np.maximum(l2, 1e-300)) & np.isfinite(normal).all(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        quality = np.where(ok, np.clip(1.0 - np.maximum(l0, 0) / l1, 0.0, 1.0), 0.0).astype(np.float32)
+    normal[~ok] = np.nan
+    return normal.astype(np.float32), quality
+
+
+def _knn_unorganized(
+    points: np.ndarray, nb_neighbors: int, std_ratio: float, radius_mm: float, normal_neighbors: int, *,
+    remove: bool = True, outliers: bool = True, normals: bool = True, workers: int = 2,
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """The knn method on finite points (N, 3) mm: dedupe, one kNN query with k = max(nb_neighbors,
+    normal_neighbors), SOR keep mask, normals among the kept points (all points when ``remove`` is False). Returns
+    (keep (N,) bool, normals (N, 3) float32 | None, quality (N,) float32 | None); duplicates share their point's
+    verdict and normal; the normals of removed points (remove=True) are NaN."""
+    first, inverse = dedupe(points)
+    if len(first) == len(points):  # no duplicates: keep the input order and skip the gathers back
+        pu, inverse = np.ascontiguousarray(points, dtype=np.float64), slice(None)
+    else:
+        pu = np.ascontiguousarray(points[first], dtype=np.float64)
+    u = len(pu)
+    keep_u = np.ones(u, dtype=bool)
+    k = min(u, max(nb_neighbors if outliers else 1, normal_neighbors if normals else 1))
+    if u >= 2:
+        dist, idx, query = _knn(pu, k, workers)
+    else:
+        dist, idx, query = np.zeros((u, 1)), np.zeros((u, 1), np.int64), np.arange(u)
+    if outliers and u > nb_neighbors:  # fewer points than the statistic needs: keep all (as before)
+        keep_u[query] = _sor_keep(dist, nb_neighbors, std_ratio)
+    if not normals:
+        return keep_u[inverse], None, None
+    allowed = keep_u if remove else np.ones(u, dtype=bool)
+    kn = min(k, normal_neighbors)
+    nu = np.full((u, 3), np.nan, dtype=np.float32)
+    qu = np.zeros(u, dtype=np.float32)
+    if u >= 3:
+        # all query rows (the few outliers too): cheaper than copying the (U, k) arrays without them
+        nu[query], qu[query] = _knn_normals(pu, query, dist[:, :kn], idx[:, :kn], allowed, radius_mm)
+        if remove:
+            nu[~allowed] = np.nan  # removed points get no normal
+            qu[~allowed] = 0
+    return keep_u[inverse], nu[inverse], qu[inverse]
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# unorganized path (open3d, as in the study; the knn method above is the fast default of prepare_scan)
+
+
+def remove_outliers(
+    points: np.ndarray, nb_neighbors: int = 20, std_ratio: float = 2.0, *, method: str = "open3d", workers: int = 2
+) -> np.ndarray:
+    """Statistical outlier removal (open3d's definition) on (N, 3) finite points (mm). Returns the keep mask (N,).
+
+    ``method="open3d"`` calls open3d; ``"knn"`` computes the same statistic from a scipy cKDTree query (``workers``
+    threads). Exact duplicates are collapsed first (they would be each other's zero-distance neighbours) and share
+    the verdict of their unique point."""
     p = _check_points(points)
     if nb_neighbors < 1 or not std_ratio > 0:
         raise PreprocessError(f"nb_neighbors must be >= 1 and std_ratio > 0, got {nb_neighbors}, {std_ratio}")
+    if method not in UNORGANIZED_METHODS:
+        raise PreprocessError(f"method must be one of {UNORGANIZED_METHODS}, got {method!r}")
+    if method == "knn":
+        return _knn_unorganized(p, int(nb_neighbors), float(std_ratio), 0.0, 0, normals=False, workers=workers)[0]
     first, inverse = dedupe(p)
     keep_u = np.zeros(len(first), dtype=bool)
     if len(first) <= nb_neighbors:
@@ -212,11 +385,15 @@ def estimate_normals(
     max_nn: int = 30,
     toward: np.ndarray | None = None,
     grid_window: int = 5,
+    method: str = "open3d",
+    workers: int = 2,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals (N, 3) float32 and a quality (N,) float32 in [0, 1] for finite points (N, 3), mm.
 
     With ``grid_shape=(H, W)`` and ``grid_index`` (flat index of each point into the H×W grid) the organized grid
-    path is used (``grid_window`` cells); otherwise open3d KD-tree estimation (hybrid ``radius_mm`` / ``max_nn``).
+    path is used (``grid_window`` cells); otherwise ``method="open3d"``: open3d KD-tree estimation (hybrid
+    ``radius_mm`` / ``max_nn``; quality from the nearest-neighbour distance), or ``"knn"``: covariance of the
+    ``max_nn`` nearest neighbours within ``radius_mm`` (scipy cKDTree, ``workers`` threads; quality = planarity).
     Normals are oriented to have a positive dot with ``toward`` ((N,3) or (3,)), or away from the centroid.
     Points without a usable neighbourhood get quality 0 and the orientation reference as normal."""
     p = _check_points(points)
@@ -237,6 +414,12 @@ def estimate_normals(
     else:
         if not radius_mm > 0 or max_nn < 3:
             raise PreprocessError(f"radius_mm must be > 0 and max_nn >= 3, got {radius_mm}, {max_nn}")
+        if method not in UNORGANIZED_METHODS:
+            raise PreprocessError(f"method must be one of {UNORGANIZED_METHODS}, got {method!r}")
+    if grid_shape is None and method == "knn":
+        _, normals, quality = _knn_unorganized(p, 0, 0.0, float(radius_mm), int(max_nn), outliers=False,
+                                               workers=workers)
+    elif grid_shape is None:
         import open3d as o3d
 
         first, inverse = dedupe(p)
@@ -417,7 +600,8 @@ def prepare_scan(
 ) -> Prepared:
     """Outlier removal, normals toward the laser source, and per-point geometry for the finite points of a scan.
 
-    Organized scans use the grid path when ``cfg.use_grid``; unorganized ones the open3d path. ``remove=False``
+    Organized scans use the grid path when ``cfg.use_grid``; unorganized ones ``cfg.unorganized_method`` ("knn",
+    one shared kNN query, default; or "open3d", the reference); ``meta["path"]`` says which. ``remove=False``
     keeps the outliers (their indices are still reported in ``outlier``). ``scanner`` None → the packaged default
     (its baseline gives the camera direction V). Raises PreprocessError on an empty / all-NaN cloud or when fewer
     than ``cfg.min_points`` points are left."""
@@ -457,13 +641,21 @@ def prepare_scan(
     else:
         vidx = np.flatnonzero(valid)
         n_valid = len(vidx)
-        keep = remove_outliers(flat[vidx], cfg.nb_neighbors, cfg.std_ratio)
+        if cfg.unorganized_method == "knn":  # one kNN query shared by the outlier removal and the normals
+            keep, nk, qk = _knn_unorganized(flat[vidx], cfg.nb_neighbors, cfg.std_ratio, cfg.normal_radius_mm,
+                                            cfg.knn_normal_neighbors, remove=remove, workers=cfg.knn_workers)
+        else:
+            keep = remove_outliers(flat[vidx], cfg.nb_neighbors, cfg.std_ratio)
         outlier = vidx[~keep]
         index = vidx[keep] if remove else vidx
         if len(index) < cfg.min_points:
             raise PreprocessError(f"only {len(index)} points left after outlier removal (need {cfg.min_points})")
         points = flat[index].astype(np.float64, copy=False)
-        normals, quality = estimate_normals(points, radius_mm=cfg.normal_radius_mm, max_nn=cfg.max_nn, toward=None)
+        if cfg.unorganized_method == "knn":
+            sel = keep if remove else slice(None)
+            normals, quality = nk[sel], qk[sel]  # NaN (undefined) normals get L and quality 0 below
+        else:
+            normals, quality = estimate_normals(points, radius_mm=cfg.normal_radius_mm, max_nn=cfg.max_nn)
     geom = point_geometry(points, scan.pose, scanner.baseline_mm, dtype=np.float32)
     # Orient toward the laser source (outward on the lit side of a closed artifact); undefined normals → L, q = 0.
     normals = np.ascontiguousarray(normals, dtype=np.float32)
@@ -486,5 +678,5 @@ def prepare_scan(
         scanner=scanner,
         geometry=geom,
         shape=scan.shape,
-        meta={"path": "grid" if grid else "open3d", "n_valid": n_valid},
+        meta={"path": "grid" if grid else cfg.unorganized_method, "n_valid": n_valid},
     )

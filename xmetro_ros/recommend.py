@@ -13,6 +13,9 @@ thresholds). Orientations covering less than ``min(min_coverage, current coverag
 before any prediction. Candidates are ranked by the p95 of the predicted |error| (norm over x, y, z) over their
 covered points, ties by the mean.
 
+A time budget (``max_seconds``) stops the search after the orientation in progress; the current orientation is
+always evaluated first, and the note says when the search was cut short.
+
 Limits (honest): it ranks by the model's *predicted systematic* error only (no random noise, no occlusion by other
 parts of the workpiece, no reachability of the pose); candidates far from the training domain are extrapolations;
 the normals are those of the current scan.
@@ -20,6 +23,7 @@ the normals are those of the current scan.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, fields, is_dataclass, replace
 from typing import Any
 
@@ -61,6 +65,7 @@ class Recommendation:
     n_orientations_kept: int
     n_settings: int
     note: str
+    n_orientations_evaluated: int = 0
 
 
 def rotation_xyz(rx: float, ry: float, rz: float) -> np.ndarray:
@@ -117,7 +122,8 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
               scanner: ScannerModel, settings: ScanSettings, candidates: list[ScanSettings] | None = None, *,
               max_points: int = 2000, max_tilt: float = 0.2618, tilt_steps: int = 3, max_turn: float = 1.5708,
               turn_steps: int = 3, grazing_incidence_deg: float = 75.0, grazing_view_deg: float = 75.0,
-              min_coverage: float = 0.95, batch_rows: int = 400_000) -> Recommendation:
+              min_coverage: float = 0.95, batch_rows: int = 400_000,
+              max_seconds: float | None = None) -> Recommendation:
     """Search settings × orientations for the region ``rows`` of a judged scan (see the module docstring).
 
     Args:
@@ -128,6 +134,8 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
             the published deviations).
         pose, scanner, settings: the current head pose (mm), scanner, settings.
         candidates: settings to try; None → ``scanner.study_configurations()``.
+        max_seconds: time budget; the search stops (and says so in the note) once it is spent, after at least the
+            current orientation (evaluated first).
 
     Raises:
         ValueError: empty region, or no orientation keeps the required coverage.
@@ -155,10 +163,16 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
     dep = [j for j, n in enumerate(names) if "settings" in tuple(REGISTRY.get(n).inputs)]
     dep_names = [names[j] for j in dep]
     orients = orientation_grid(max_tilt, tilt_steps, max_turn, turn_steps)
+    # The current orientation first: it is always evaluated, whatever the time budget.
+    orients.sort(key=lambda r: not np.allclose(r, np.eye(3)))
+    t_start = time.monotonic()
     ranked: list[Candidate] = []
-    n_kept = 0
+    n_kept = n_eval = 0
     m = len(rows)
     for r in orients:
+        if max_seconds is not None and n_eval and time.monotonic() - t_start > max_seconds:
+            break
+        n_eval += 1
         pose_o = pose.rotated(r, pivot=centroid)
         ctx_o = sub.with_pose(pose_o, scanner)
         cov = coverage_mask(ctx_o, grazing_incidence_deg, grazing_view_deg)
@@ -185,7 +199,11 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
         raise ValueError(f"no orientation keeps the coverage >= {need:.3f} of the region")
     ranked.sort(key=lambda c: (c.p95_mm, c.mean_mm))
     note = f"{len(orients)} orientations ({n_kept} kept) x {len(cands)} settings on {m} points"
+    if n_eval < len(orients):
+        note += (f"; time budget of {max_seconds:g} s spent: search stopped after {n_eval} of {len(orients)} "
+                 "orientations")
     if n_region > m:
         note += f" (region of {n_region} points subsampled, evenly spaced)"
     return Recommendation(best=ranked[0], before=before, ranked=ranked, n_points=m, n_region=n_region,
-                          n_orientations=len(orients), n_orientations_kept=n_kept, n_settings=len(cands), note=note)
+                          n_orientations=len(orients), n_orientations_kept=n_kept, n_settings=len(cands), note=note,
+                          n_orientations_evaluated=n_eval)

@@ -24,7 +24,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "simulate`); default: simulate the profile's campaign with --seed")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--families", default=",".join(FAMILIES), help=f"comma-separated subset of {','.join(FAMILIES)}")
-    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--threads", type=int, default=1, help="threads per fit (torch, BLAS, CatBoost)")
     p.set_defaults(func=run_train)
 
     e = subparsers.add_parser("export-default", help="train (or copy) the default model set shipped in the package")

@@ -64,8 +64,8 @@ PROFILES: dict[str, Profile] = {
     # For the tests: seconds, not minutes. Small nets, 2-fold search, few clouds.
     "micro": Profile(
         "micro", n_iter=2, cv=2, cv_max_points=600, catboost_iterations=(30, 60), mlp_max_iter=60,
-        pointnet_epochs=25, pointnet_grid=((32,),), pointnet_grid_epochs=5, pointnet_study_block2=(32, 64),
-        compact={"block1": (16,), "block2": (32,), "head": (16,), "epochs": 25},
+        pointnet_epochs=15, pointnet_grid=((32,),), pointnet_grid_epochs=5, pointnet_study_block2=(32, 64),
+        compact={"block1": (16,), "block2": (32,), "head": (16,), "epochs": 40},
         campaign={"sphere_diameters": (45,), "cylinder": False}, campaign_stride=3, n_test_draws=2,
         shap_points=60, shap_background=8,
     ),
@@ -78,10 +78,10 @@ PROFILES: dict[str, Profile] = {
     ),
     # The study's protocol: every cloud, 5-fold randomized search, study-size PointNet with a head grid search.
     "full": Profile(
-        "full", n_iter=6, cv=5, cv_max_points=3000, catboost_iterations=(200, 600), mlp_max_iter=200,
-        pointnet_epochs=40, pointnet_grid=((512, 256, 128), (128, 64)), pointnet_grid_epochs=6,
+        "full", n_iter=5, cv=5, cv_max_points=3000, catboost_iterations=(200, 600), mlp_max_iter=200,
+        pointnet_epochs=30, pointnet_grid=((512, 256, 128), (128, 64)), pointnet_grid_epochs=5,
         pointnet_study_block2=(64, 128, 1024),
-        compact={"block1": (32,), "block2": (64,), "head": (32,), "epochs": 120},
+        compact={"block1": (32,), "block2": (64,), "head": (32,), "epochs": 100},
         campaign={"sphere_diameters": (35, 45, 55), "cylinder": True}, campaign_stride=1,
         shap_points=500, shap_background=10,
     ),
@@ -96,7 +96,7 @@ def get_profile(name: str | Profile) -> Profile:
     return PROFILES[name]
 
 
-def make_estimator(family: str, seed: int, profile: Profile, threads: int = 2) -> Any:
+def make_estimator(family: str, seed: int, profile: Profile, threads: int = 1) -> Any:
     """A fresh, unfitted estimator of a point-wise family (targets in µm)."""
     check_family(family)
     if family == "dt":

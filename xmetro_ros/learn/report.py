@@ -13,7 +13,7 @@ __all__ = ["tables_markdown", "deviation_map", "shap_beeswarm"]
 AXIS_NAMES = ("X", "Y", "Z")
 
 
-def _fmt(s: dict | None, digits: int = 4) -> str:
+def _fmt(s: dict | None, digits: int = 5) -> str:
     if not s or s.get("mean") is None or not np.isfinite(s["mean"]):
         return "n/a"
     return f"{s['mean']:.{digits}f} ± {s['std']:.{digits}f}"
@@ -52,16 +52,17 @@ def _plt():
 
 def deviation_map(coords: np.ndarray, actual: np.ndarray, predicted: np.ndarray, axis: int, path: Path,
                   title: str = "") -> Path:
-    """Predicted vs actual deviation map for one axis (like the study's Figs. 3-5): 3D scatter, shared colour scale."""
+    """Predicted vs actual deviation map for one axis (like the study's Figs. 3-5): 3D scatter, mm."""
     plt = _plt()
-    fig = plt.figure(figsize=(8, 3.6), dpi=80)
-    lim = float(np.nanpercentile(np.abs(np.concatenate([actual, predicted])), 98)) or 1e-6
+    fig = plt.figure(figsize=(9, 3.6), dpi=80)
     for i, (vals, name) in enumerate(((actual, "actual"), (predicted, "predicted"))):
+        # One colour scale per panel: the actual error carries the noise, the prediction only the systematic part.
+        lim = float(np.nanpercentile(np.abs(vals), 98)) or 1e-6
         ax = fig.add_subplot(1, 2, i + 1, projection="3d")
         sc = ax.scatter(coords[:, 0], coords[:, 1], coords[:, 2], c=vals, cmap="coolwarm", vmin=-lim, vmax=lim, s=3)
         ax.set_title(f"{AXIS_NAMES[axis]} deviation, {name}", fontsize=9)
         ax.tick_params(labelsize=6)
-    fig.colorbar(sc, ax=fig.axes, shrink=0.7, label="mm")
+        fig.colorbar(sc, ax=ax, shrink=0.6, label="mm")
     if title:
         fig.suptitle(title, fontsize=9)
     fig.savefig(path)

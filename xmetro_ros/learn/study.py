@@ -125,7 +125,7 @@ def run_study(
     seed: int = 0,
     out_dir: str | Path = "out/train",
     families: Sequence[str] = FAMILIES,
-    threads: int = 2,
+    threads: int = 1,
     log: Callable[[str], None] = print,
     timing: bool = True,
 ) -> dict:
@@ -219,14 +219,16 @@ def run_study(
         metrics["timings_s"][f"export/{fam}"] = round(time.perf_counter() - t0, 1)
         log(f"exported {fam}: {info}")
 
-    _shap_and_plots(metrics, point_models, out, X, y, cid, splits["point"], names, prof, log)
+    _shap_and_plots(metrics, point_models, out, X, y, cid, splits["point"], names, prof, log,
+                    clouds=getattr(table, "clouds", None))
     metrics["timings_s"]["total"] = round(time.perf_counter() - t_start, 1)
     (out / "metrics.json").write_text(json.dumps(_jsonable(metrics), indent=1))
     (out / "tables.md").write_text(report.tables_markdown(metrics))
     return metrics
 
 
-def _shap_and_plots(metrics, point_models, out: Path, X, y, cid, split: Split, names, prof, log) -> None:
+def _shap_and_plots(metrics, point_models, out: Path, X, y, cid, split: Split, names, prof, log,
+                    clouds: list | None = None) -> None:
     t0 = time.perf_counter()
     test = split.test[0]
     clouds = np.unique(cid[test])
@@ -256,7 +258,7 @@ def _shap_and_plots(metrics, point_models, out: Path, X, y, cid, split: Split, n
     # Deviation maps: one held-in sphere cloud, its non-training points, best PointNet vs actual.
     model = (point_models.get("pointnet") or point_models.get("pointnet_multi") or [None])
     if model[0] is not None:
-        c = pick[0]
+        c = _map_cloud(pick, clouds)
         rows = np.setdiff1d(np.flatnonzero(cid == c), split.train)
         coords = X[rows][:, [names.index(n) for n in ("N_x", "N_y", "N_z")]] if "N_x" in names else X[rows][:, :3]
         pred = np.zeros((len(rows), 3))
@@ -267,6 +269,17 @@ def _shap_and_plots(metrics, point_models, out: Path, X, y, cid, split: Split, n
                                  title=f"cloud {c}: {model[0].family}, on the unit normal sphere (N_x, N_y, N_z)")
     metrics["timings_s"]["shap_and_plots"] = round(time.perf_counter() - t0, 1)
     log(f"SHAP and plots: {time.perf_counter() - t0:.1f} s")
+
+
+def _map_cloud(pick: np.ndarray, clouds: list | None):
+    """The cloud for the deviation maps: the first picked sphere (where the table says), else the first pick."""
+    for c in pick:
+        try:
+            if "sphere" in json.dumps(clouds[int(c)].get("artifact", "")).lower():
+                return c
+        except (TypeError, IndexError, AttributeError):
+            break
+    return pick[0]
 
 
 def _rank_and_plot(S: np.ndarray, Xs: np.ndarray, names: list[str], fam: str, out: Path) -> dict:

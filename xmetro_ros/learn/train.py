@@ -91,7 +91,7 @@ def fit_model(
     groups: np.ndarray | None = None,
     params: dict | None = None,
     space: dict | None = None,
-    threads: int = 2,
+    threads: int = 1,
 ) -> FittedModel:
     """Fit ``family`` on X (M, F) and y (M,) mm (or (M, 3) for ``pointnet_multi``).
 

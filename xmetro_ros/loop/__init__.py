@@ -1,1 +1,6 @@
-"""xmetro_ros.loop."""
+"""xmetro_ros.loop: close the loop on measured data (issue #7; docs/closed-loop.md).
+
+``inputs.load_inputs`` → ``LoopData``; ``run.run_loop`` (model → residual → ``trace.trace_candidates`` → correction
+from ``correct`` or a retrained feature → before/after); ``report.write_report``; ``export.export_loop_model``;
+CLI ``xmetro loop`` in ``cli``.
+"""

@@ -37,12 +37,12 @@ def run(args: argparse.Namespace) -> int:
     from .trace import TraceConfig
 
     try:
-        data = load_inputs(args.inputs, args.artifact)
         given = None
         if args.model:
             from ..inference import ModelSet
 
             given = GivenModel(ModelSet.load(args.model))
+        data = load_inputs(args.inputs, args.artifact, given.feature_names if given else None)
         cfg = LoopConfig(
             iterations=args.iterations, max_iter=args.max_iter, correction=args.correction, seed=args.seed,
             candidates=args.candidates.split(",") if args.candidates else None,

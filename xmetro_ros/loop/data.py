@@ -103,5 +103,12 @@ class LoopData:
             feature_names=list(names), fields={k: np.concatenate([p.fields[k] for p in parts]) for k in common},
             group=np.concatenate(groups), order=np.concatenate([p.order for p in parts]),
             geometry={k: np.concatenate([p.geometry[k] for p in parts]) for k in gcommon}, group_names=gnames,
-            source=parts[0].source, hold_by=parts[0].hold_by, artifact=dict(parts[0].artifact),
+            source=parts[0].source, hold_by=parts[0].hold_by, artifact=_merge_artifacts([p.artifact for p in parts]),
         )
+
+
+def _merge_artifacts(arts: list[dict]) -> dict:
+    """One description when all parts share the artifact, else the list per group."""
+    if all(a == arts[0] for a in arts):
+        return dict(arts[0])
+    return {"per_group": arts}

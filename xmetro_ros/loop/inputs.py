@@ -169,9 +169,10 @@ def detect_kind(path: Path) -> str:
                          "profile directory with RobPoses.rob)")
 
 
-def load_inputs(paths: list[str | Path], artifact_spec: str | None) -> LoopData:
+def load_inputs(paths: list[str | Path], artifact_spec: str | None, feature_names: list[str] | None = None) -> LoopData:
     """All inputs of one run (they must be of one kind). ``artifact_spec`` (parse_artifact syntax) is required for
-    measured files; for bags it overrides the scans' own artifact."""
+    measured files; for bags it overrides the scans' own artifact. ``feature_names``: the features of a given model
+    (bags: any registry features; measured sets: only ``MEASURED_FEATURES``, they declare no scan settings)."""
     if not paths:
         raise LoopInputError("no input given")
     art, fit = (parse_artifact(artifact_spec) if artifact_spec else (None, False))
@@ -182,6 +183,9 @@ def load_inputs(paths: list[str | Path], artifact_spec: str | None) -> LoopData:
     from ..measured import MeasuredDataError
     if kind != "bag" and art is None:
         raise LoopInputError("measured inputs need --artifact (e.g. sphere:radius=50,center=fit)")
+    if kind != "bag" and feature_names is not None and list(feature_names) != MEASURED_FEATURES:
+        raise LoopInputError(f"measured {kind} data give only the features {MEASURED_FEATURES} (no scan settings); "
+                             f"the model needs {list(feature_names)}")
     parts = []
     for p in paths:
         try:
@@ -189,7 +193,8 @@ def load_inputs(paths: list[str | Path], artifact_spec: str | None) -> LoopData:
                 from ..scan_io import read_scans
 
                 scans = read_scans(p)
-                parts.append(from_scans(scans, art, fit, names=[f"{Path(p).stem}#{i}" for i in range(len(scans))]))
+                parts.append(from_scans(scans, art, fit, feature_names=feature_names,
+                                        names=[f"{Path(p).stem}#{i}" for i in range(len(scans))]))
             elif kind == "nist":
                 parts.append(from_nist(Path(p), art, fit))
             else:

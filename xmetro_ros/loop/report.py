@@ -26,11 +26,18 @@ def _plot(p: dict, path: Path) -> None:
     for key, col in (("before", "tab:red"), ("after", "tab:blue")):
         y = np.asarray(p[key]) * 1e3
         ax.scatter(x[sel], y[sel], s=2, alpha=0.3, color=col, label=f"{key} (points)")
-        edges = np.unique(np.quantile(x, np.linspace(0, 1, 17)))
-        idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, len(edges) - 2)
-        nb = len(edges) - 1
+        if p.get("unit") == "id":  # identities: one mean per identity
+            centers, idx = np.unique(x, return_inverse=True)
+            nb = len(centers)
+        else:
+            edges = np.unique(np.quantile(x, np.linspace(0, 1, 17)))
+            idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, len(edges) - 2)
+            nb = len(edges) - 1
+            centers = 0.5 * (edges[:-1] + edges[1:])
+        idx = idx.reshape(-1)
         m = np.bincount(idx, weights=y, minlength=nb) / np.maximum(np.bincount(idx, minlength=nb), 1)
-        ax.plot(0.5 * (edges[:-1] + edges[1:]), m, color=col, lw=2, label=f"{key} (bin mean)")
+        ax.plot(centers, m, color=col, lw=2, marker="o" if p.get("unit") == "id" else None,
+                ls="" if p.get("unit") == "id" else "-", label=f"{key} (mean)")
     ax.set_xlabel(f"{p['variable']} [{p.get('unit', '')}]")
     ax.set_ylabel("residual along normal [µm]")
     ax.legend(fontsize=7)

@@ -1,7 +1,7 @@
 """The closed loop on a LoopData table: model → residual → trace → add the top effect → before/after, iterated.
 
 Roles of the groups (clouds or profiles), drawn once with the seed:
-- ``train`` (A): the model of the current features is fitted here (absent when a model is given);
+- ``train`` (A): the model of the current features is fitted here (with a given model: its residual corrector);
 - ``trace`` (B): residuals are traced here (group-held-out CV inside B, see trace.py);
 - ``eval`` (C): before / after metrics, held out from both tracing and model fitting. Per-identity offsets are
   cross-fitted inside each identity (fit on half of its blocks, applied to the other half), so eval points are
@@ -41,6 +41,9 @@ class LoopConfig:
         fractions: share of groups for train / trace / eval (train ignored with a given model).
         block_size: points per block for the identity hold-out and the offset cross-fit.
         offset_ridge: ridge (relative) of the per-identity offset fit.
+        min_gain: a traced effect is added only if it lowers the squared error of the trace part by this fraction
+            (the trace part is held out from model fitting; offsets are cross-fitted); else the next one is tried.
+        max_tries: at most this many significant candidates are tried per iteration.
         trace: TraceConfig (permutations, alpha, minimum effect, ...).
         seed: seed of the role draw, the model and the trace.
     """
@@ -53,6 +56,8 @@ class LoopConfig:
     fractions: tuple[float, float, float] = (0.4, 0.3, 0.3)
     block_size: int = 24
     offset_ridge: float = 1e-3
+    min_gain: float = 0.02
+    max_tries: int = 4
     trace: TraceConfig = field(default_factory=TraceConfig)
     seed: int = 0
     threads: int = 2
@@ -131,17 +136,15 @@ def error_summary(errors: np.ndarray, normals: np.ndarray) -> dict:
     return d
 
 
-def _select(scores, info: dict[str, CandidateInfo], correction: str):
-    """The effect to add: the best significant continuous candidate (held out by whole clouds/profiles, so it
-    generalises to unseen ones); only when none is significant, the best significant identity candidate. Identity
-    candidates are scored inside their own groups, which lets them mimic any smooth within-group effect (drift,
-    distortion) — so they come second, as the loop's last resort (per-profile / per-pass offsets)."""
+def _ordered(scores, info: dict[str, CandidateInfo], correction: str) -> list:
+    """Effects to try, in order: significant *continuous* candidates by score (held out by whole clouds/profiles, so
+    they generalise to unseen ones), then significant *identity* candidates by score. Identity candidates are scored
+    inside their own groups, which lets them mimic any smooth within-group effect (drift, distortion) — so they come
+    last, as the loop's last resort (per-profile / per-pass offsets)."""
     ok = [s for s in scores if s.significant and not s.in_model]
     cont = [s for s in ok if info[s.name].kind != "identity" and correction != "offset"]
     ident = [s for s in ok if info[s.name].kind == "identity" and correction != "feature"]
-    if cont:
-        return max(cont, key=lambda s: s.score)
-    return max(ident, key=lambda s: s.score, default=None)
+    return sorted(cont, key=lambda s: -s.score) + sorted(ident, key=lambda s: -s.score)
 
 
 def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | None = None) -> LoopResult:
@@ -151,9 +154,9 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
         raise ValueError(f"correction must be auto, feature or offset, got {cfg.correction!r}")
     if given is not None and list(given.feature_names) != list(data.feature_names):
         raise LoopInputError("the given model's features differ from the features computed for the input")
-    roles = split_roles(data.group, cfg.fractions, cfg.seed, need_train=given is None)
+    roles = split_roles(data.group, cfg.fractions, cfg.seed, need_train=True)
     A, B, C = (roles == ROLE_TRAIN), (roles == ROLE_TRACE), (roles == ROLE_EVAL)
-    for name, m in (("trace", B), ("eval", C)) + ((("train", A),) if given is None else ()):
+    for name, m in (("train", A), ("trace", B), ("eval", C)):
         if m.sum() < 4 * cfg.trace.n_bins:
             raise LoopInputError(f"too few points in the {name} part: {int(m.sum())}")
     cand_vals, cand_info = build_candidates(data, include=cfg.candidates)
@@ -179,16 +182,18 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
     added: list[str] = []
     offset_summaries: dict[str, dict] = {}
 
-    def refresh_offsets() -> np.ndarray:
-        total = np.zeros_like(model_pred)
-        for name in offsets:
-            res = E - model_pred - total
+    def offsets_for(mpred: np.ndarray, names: list[str]) -> tuple[np.ndarray, dict[str, dict]]:
+        """Cross-fitted per-identity offsets (applied in order) on top of ``mpred``, and their eval summaries."""
+        total = np.zeros_like(mpred)
+        summ: dict[str, dict] = {}
+        for name in names:
+            res = E - mpred - total
             total += cross_fit_offsets(res, Nrm, cand_vals[name], data.order, cfg.block_size, cfg.offset_ridge)
             uk, w = fit_offsets(res[C], Nrm[C], cand_vals[name][C], cfg.offset_ridge)
             mag = np.linalg.norm(w, axis=1) * 1e3
-            offset_summaries[name] = {"n_identities_eval": int(len(uk)), "median_um": float(np.median(mag)),
-                                      "max_um": float(mag.max())}
-        return total
+            summ[name] = {"n_identities_eval": int(len(uk)), "median_um": float(np.median(mag)),
+                          "max_um": float(mag.max())}
+        return total, summ
 
     report: dict = {
         "schema": "xmetro.loop.report/1",
@@ -204,7 +209,9 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
         "model": {"kind": "given" if given is not None else "retrained", "family": cfg.family if given is None else
                   getattr(given.model_set, "id", "given"), "features": list(feat_names)},
         "ground_truth": {"all": error_summary(E, Nrm), "eval": error_summary(E[C], Nrm[C])},
-        "config": {"family": cfg.family, "iterations": cfg.iterations, "max_iter": cfg.max_iter, "correction": cfg.correction, "seed": cfg.seed,
+        "config": {"family": cfg.family, "iterations": cfg.iterations,
+                   "max_iter": cfg.max_iter, "min_gain": cfg.min_gain,
+                   "max_tries": cfg.max_tries, "correction": cfg.correction, "seed": cfg.seed,
                    "block_size": cfg.block_size, "trace": {k: getattr(cfg.trace, k) for k in
                                                            ("n_folds", "n_bins", "shrink", "n_perm", "alpha",
                                                             "min_effect", "block_size", "max_points")}},
@@ -228,32 +235,50 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
         cands = [s.to_dict() for s in scores]
         if first_candidates is None:
             first_candidates = cands
-        sel = _select(scores, cand_info, cfg.correction)
-        rec: dict = {"iteration": it, "candidates": cands, "selected": None, "before": metrics(E[C], pred[C], Nrm[C])}
+        rec: dict = {"iteration": it, "candidates": cands, "selected": None, "rejected": [],
+                     "before": metrics(E[C], pred[C], Nrm[C])}
+        mse_b = float(((E[B] - pred[B]) ** 2).sum())
+        sel = None
+        for cand in _ordered(scores, cand_info, cfg.correction)[: cfg.max_tries]:
+            kind = cand_info[cand.name].kind
+            if kind == "identity":
+                t_offsets = offsets + [cand.name]
+                t_model, t_model_pred, t_X, t_feats = model, model_pred, X, feat_names
+            else:
+                t_offsets = offsets
+                t_X = np.hstack([X, cand_vals[cand.name][:, None].astype(np.float32)])
+                t_feats = feat_names + [cand.name]
+                if given is None:
+                    t_model = fit_model(t_X, t_feats)
+                    t_model_pred = t_model.predict(t_X)
+                else:
+                    t_model = model
+                    corr = fit_family(cfg.family, t_X[A], (E - base_pred)[A], t_feats, seed=cfg.seed,
+                                      iterations=cfg.iterations, threads=cfg.threads)
+                    t_model_pred = base_pred + corr.predict(t_X)
+            t_offset_pred, t_summ = offsets_for(t_model_pred, t_offsets)
+            t_pred = t_model_pred + t_offset_pred
+            # Check on the trace part (held out from model fitting; offsets cross-fitted): a traced variable that
+            # does not lower the error there is not added (e.g. a within-profile shape no model can generalise).
+            gain = 1.0 - float(((E[B] - t_pred[B]) ** 2).sum()) / mse_b
+            if gain < cfg.min_gain:
+                rec["rejected"].append({"name": cand.name, "trace_gain": gain})
+                continue
+            sel, model, model_pred, X, feat_names = cand, t_model, t_model_pred, t_X, t_feats
+            offsets, offset_pred = t_offsets, t_offset_pred
+            offset_summaries.update(t_summ)
+            if kind == "identity":
+                action = {"correction": "offset", "variable": cand.name, "offsets": t_summ[cand.name]}
+            else:
+                added.append(cand.name)
+                action = {"correction": "feature", "variable": cand.name, "feature": cand.name}
+            rec["selected"] = {**cand.to_dict(), **action, "trace_gain": gain}
+            break
         if sel is None:
             rec["after"] = rec["before"]
             iterations.append(rec)
             break
-        kind = cand_info[sel.name].kind
-        if kind == "identity":
-            offsets.append(sel.name)
-            offset_pred = refresh_offsets()
-            action = {"correction": "offset", "variable": sel.name, "offsets": offset_summaries[sel.name]}
-        else:
-            added.append(sel.name)
-            X = np.hstack([X, cand_vals[sel.name][:, None].astype(np.float32)])
-            feat_names = feat_names + [sel.name]
-            if given is None:
-                model = fit_model(X, feat_names)
-                model_pred = model.predict(X)
-            else:
-                corr = fit_family(cfg.family, X[A | B], (E - base_pred)[A | B], feat_names, seed=cfg.seed,
-                                  iterations=cfg.iterations, threads=cfg.threads)
-                model_pred = base_pred + corr.predict(X)
-            offset_pred = refresh_offsets()
-            action = {"correction": "feature", "variable": sel.name, "feature": sel.name}
         new_pred = model_pred + offset_pred
-        rec["selected"] = {**sel.to_dict(), **action}
         rec["after"] = metrics(E[C], new_pred[C], Nrm[C])
         iterations.append(rec)
         plots.append({"iteration": it, "variable": sel.name, "x": cand_vals[sel.name][C],
@@ -267,6 +292,6 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
     report["after"] = metrics(E[C], final_pred[C], Nrm[C])
     report["iterations"] = iterations
     report["final_features"] = feat_names
-    fit_rows = A if given is None else (A | B)
+    fit_rows = A
     return LoopResult(report, model if (given is None and added) else None, feat_names, added, offsets, plots, X,
                       fit_rows)

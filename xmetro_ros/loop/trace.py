@@ -6,9 +6,9 @@ Method (per candidate variable ``x``, residual ``R`` (N, 3) mm = actual − pred
 - Regressor: a shrunken bin-mean (piecewise-constant) fit of ``R`` on ``x``: quantile bins of ``x`` (continuous
   candidates) or one bin per identity value (identity candidates, e.g. a profile or pass id). Piecewise-constant
   fits catch non-linear and non-monotonic effects; shrinkage (``n / (n + shrink)``) keeps sparse bins near zero.
-- Held-out score: K-fold cross-validation whose folds hold out whole groups (clouds or profiles) for continuous
-  candidates, scored on the within-group residual (each group's mean residual removed, see ``trace_candidates``); an identity's effect cannot transfer to an unseen identity, so identity candidates are held out by
-  interleaved blocks of points inside each group (fit on some blocks of a profile, score on the others).
+- Held-out score: K-fold cross-validation. Continuous candidates: folds hold out whole groups (clouds or
+  profiles). Identity candidates (an identity's effect cannot transfer to an unseen identity): held out by interleaved
+  blocks of points inside each group (fit on some blocks of a profile, score on the others).
   ``score`` = 1 − SSE / SST over the held-out points and the three axes (the fraction of the residual's variance
   explained out of sample; ≤ 0 when the candidate explains nothing).
 - Significance: the same score with the residual rows permuted inside each training fold (``n_perm`` times; the
@@ -17,6 +17,9 @@ Method (per candidate variable ``x``, residual ``R`` (N, 3) mm = actual − pred
   permutations suffice; Holm's step-down correction over all candidates controls the family-wise error rate.
 - A candidate is *significant* when its Holm-adjusted p ≤ ``alpha`` **and** its score ≥ ``min_effect`` (a
   practical-size floor: a tiny but "significant" share of a huge cloud is not an effect worth a feature).
+  The point-wise null cannot see cloud-level coincidences (with few clouds, a candidate whose range differs between
+  clouds can "explain" per-cloud offsets); the loop therefore also checks that an added effect lowers the error of
+  the trace part after refitting (``run.LoopConfig.min_gain``).
 
 Everything is vectorised over points and permutations (``np.bincount``), no per-point Python loops.
 """
@@ -237,20 +240,6 @@ def trace_candidates(
     folds_group = cv_folds(groups, order, cfg.n_folds, by="group", block_size=cfg.block_size, seed=cfg.seed)
     folds_block = cv_folds(groups, order, cfg.n_folds, by="block", block_size=cfg.block_size, seed=cfg.seed)
     meta = meta or {}
-    # Continuous candidates are scored on the within-group residual (each group's mean removed): with a handful of
-    # clouds, per-cloud offsets would otherwise be "explained" by any candidate whose range differs between clouds
-    # — a cloud-level coincidence the point-wise permutation null cannot see. Identity candidates see the raw one.
-    ug, ginv = np.unique(groups, return_inverse=True)
-    ginv = ginv.reshape(-1)
-    cnt = np.bincount(ginv, minlength=len(ug)).astype(float)
-
-    def centred(a: np.ndarray) -> np.ndarray:
-        a2 = a.reshape(len(a), -1)
-        means = np.stack([np.bincount(ginv, weights=a2[:, j], minlength=len(ug)) / cnt for j in range(a2.shape[1])], 1)
-        return (a2 - means[ginv]).reshape(a.shape)
-
-    R_within = centred(R)
-    nres_within = None if nres is None else centred(nres)
     scores: list[CandidateScore] = []
     for i, (name, vals) in enumerate(candidates.items()):
         x = np.asarray(vals)[sel]
@@ -265,10 +254,7 @@ def trace_candidates(
             res = {"score": 0.0, "score_axes": dict.fromkeys("xyz", 0.0), "score_normal": 0.0, "p_value": 1.0,
                    "null_mean": 0.0, "null_p95": 0.0}
         else:
-            if kind == "identity":
-                res = score_candidate(R, x, kind, folds, cfg, rng, nres)
-            else:
-                res = score_candidate(R_within, x, kind, folds, cfg, rng, nres_within)
+            res = score_candidate(R, x, kind, folds, cfg, rng, nres)
         m = meta.get(name, {})
         scores.append(CandidateScore(
             name=name, kind=kind, score=res["score"], score_axes=res["score_axes"], score_normal=res["score_normal"],
