@@ -154,3 +154,36 @@ def test_default_model_loads_and_predicts():
     X = np.asarray(ms.card["background"], np.float32)
     out = ms.predict(X)
     assert out.shape == (len(X), 3) and np.isfinite(out).all() and np.abs(out).max() < 1.0  # mm
+
+
+def test_explain_in_cloud_explains_the_published_predictions(trained):
+    """For a PointNet set model, base + Σ SHAP (features + the set-context player) equals the prediction that
+    ``predict`` gives the point inside the whole cloud (its own set of 50), not the prediction of the explained rows
+    as a cloud of their own; for a point-wise model there is no context player and the same equality holds."""
+    from xmetro_ros.learn.shap_explain import SET_CONTEXT, explain, explain_in_cloud
+
+    t, _, pn_dir, dt_dir = trained
+    X = np.resize(t.X, (1200, 14)) + np.random.default_rng(3).normal(0, 0.05, (1200, 14)).astype(np.float32)
+    rows = np.array([0, 7, 49, 50, 333, 1199])  # 1200 = 24 full sets, so 1199 sits in a full set too
+    for model_dir, has_sets in ((pn_dir, True), (dt_dir, False)):
+        ms = ModelSet.load(model_dir)
+        assert ms.has_sets is has_sets
+        published = ms.predict(X)[rows]
+        r = explain_in_cloud(ms, X, rows)
+        assert r.feature_names == NAMES + ([SET_CONTEXT] if has_sets else [])
+        assert r.shap.shape == (len(rows), 14 + has_sets, 3)
+        np.testing.assert_allclose(r.predictions, published, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(r.base_values + r.shap.sum(axis=1), r.predictions, rtol=0, atol=1e-9)
+    # the set model's neighbours matter: the rows explained as their own cloud predict differently, and the
+    # context player carries a share
+    pn = ModelSet.load(pn_dir)
+    alone = explain(pn, X[rows])
+    assert np.max(np.abs(alone.predictions - pn.predict(X)[rows])) > 1e-6
+    r = explain_in_cloud(pn, X, rows)
+    assert np.abs(r.shap[:, -1]).max() > 1e-6
+    # a cloud whose last set is padded (1,234 rows): points of the padded set too
+    X2 = np.resize(X, (1234, 14))
+    r2 = explain_in_cloud(pn, X2, np.array([1200, 1233]))
+    np.testing.assert_allclose(r2.predictions, pn.predict(X2)[[1200, 1233]], rtol=0, atol=1e-6)
+    with pytest.raises(ValueError, match="out of range"):
+        explain_in_cloud(pn, X, np.array([1200]))

@@ -300,17 +300,19 @@ def test_services(rig):
     r = call_service(explain, req, timeout=TIMEOUT)
     assert r.success, r.message
     P, F, A = len(req.indices), len(r.feature_names), 3
-    assert r.axis_names == ["x", "y", "z"] and F == len(node.core.model.feature_names)
+    model = node.core.model
+    # the model's features, plus the set-context player for a PointNet model (its set neighbours' share)
+    assert r.feature_names == list(model.feature_names) + (["set_context"] if model.has_sets else [])
+    assert r.axis_names == ["x", "y", "z"] and len(r.feature_units) == F
     assert list(r.point_indices) == list(req.indices)
     shap = np.array(r.shap_values).reshape(P, F, A)
     pred = np.array(r.predictions).reshape(P, A)
     np.testing.assert_allclose(np.array(r.base_values) + shap.sum(axis=1), pred, rtol=0, atol=1e-9)
-    # = the model's prediction for these points' features; for per-point models (no PointNet set member, whose
-    # prediction depends on the other points of the set) also = the published ~/deviations
-    feats = np.array(r.feature_values, dtype=np.float32).reshape(P, F)
-    np.testing.assert_allclose(pred, node.core.model.predict(feats) * 1e-3, rtol=0, atol=1e-9)
-    if all(m.kind == "points" for m in node.core.model.members):
-        np.testing.assert_allclose(pred, res.deviations[np.array(req.indices)] * 1e-3, rtol=0, atol=1e-9)
+    # = exactly what ~/deviations published for these points, whatever the model family
+    np.testing.assert_allclose(pred, res.deviations[np.array(req.indices)] * 1e-3, rtol=0, atol=1e-9)
+    d = _arrays(dev)
+    published = np.column_stack([d["dx"], d["dy"], d["dz"]]).astype(np.float64)[np.array(req.indices)]
+    np.testing.assert_allclose(pred, published, rtol=0, atol=1e-9)
     assert len(r.mean_abs_shap) == F * A and len(r.feature_values) == P * F
     np.testing.assert_allclose(np.array(r.mean_abs_shap).reshape(F, A), np.abs(shap).mean(axis=0), atol=1e-15)
 

@@ -2,9 +2,10 @@
 
 The node keeps the last few judged scans (:class:`ScanHistory`, bounded). A request picks a scan (stamp, 0 = the
 latest), points (flat indices, or a sphere region in the scan frame, or every processed point), and axes; the
-answer holds, for every model feature and every requested axis, the SHAP values (``learn.shap_explain.explain``),
-base values, the features, the predictions (= base + Σ SHAP) and the mean |SHAP| per feature over the explained
-points. Units: mm inside, metres in the response (the node converts).
+answer holds, for every model feature (and, for a PointNet model, the ``set_context`` player) and every requested
+axis, the SHAP values (``learn.shap_explain.explain_in_cloud``), base values, the features, the predictions
+(= base + Σ SHAP = the published deviations) and the mean |SHAP| per feature over the explained points.
+Units: mm inside, metres in the response (the node converts).
 """
 
 from __future__ import annotations
@@ -148,18 +149,42 @@ def select_rows(judged: JudgedScan, indices: np.ndarray, center_mm: np.ndarray |
 
 
 def explain_rows(model_set: Any, judged: JudgedScan, rows: np.ndarray, axes: tuple[int, ...]) -> dict[str, Any]:
-    """SHAP explanation of ``rows`` of ``judged`` (mm): base (A,), shap (P, F, A), predictions (P, A), X (P, F),
-    mean |SHAP| (F, A), point indices (P,)."""
-    from .learn.shap_explain import explain
+    """SHAP explanation of the published predictions of ``rows`` of ``judged`` (mm): base (A,), shap (P, F', A),
+    predictions (P, A) (= the published deviations), player values X (P, F'), names and units of the F' players,
+    mean |SHAP| (F', A) over the explained points, point indices (P,).
 
-    X = judged.features[rows]
-    res = explain(model_set, X, None, axes=axes)
+    The players are the model's features, plus ``set_context`` (the other points of the point's PointNet set; its
+    value is how many distinct other points that set holds) when the model has a set member
+    (``learn.shap_explain.explain_in_cloud``).
+    """
+    from .learn.shap_explain import SET_CONTEXT, explain_in_cloud
+
+    feats = judged.features
+    finite = np.isfinite(feats).all(axis=1)
+    # The model predicted the finite rows together, in order (inference.ModelSet.predict): explain in that cloud.
+    cloud_row = np.cumsum(finite) - 1
+    res = explain_in_cloud(model_set, feats[finite], cloud_row[rows], None, axes=axes)
+    X = feats[rows].astype(np.float64)
+    names = list(model_set.feature_names)
+    units = list(model_set.feature_units)
+    if res.feature_names[-1] == SET_CONTEXT and len(res.feature_names) == len(names) + 1:
+        from .learn.pointnet import partition_sets
+
+        idx, _ = partition_sets(int(finite.sum()), model_set.set_size, model_set.partition_seed)
+        set_of = np.empty(int(finite.sum()), np.int64)
+        set_of[idx.reshape(-1)[: len(set_of)]] = np.arange(len(set_of)) // model_set.set_size
+        sizes = np.bincount(set_of)
+        X = np.column_stack([X, sizes[set_of[cloud_row[rows]]] - 1.0])
+        names.append(SET_CONTEXT)
+        units.append("points")
     shap_vals = np.asarray(res.shap, dtype=np.float64)
     return {
         "base_values": np.asarray(res.base_values, dtype=np.float64),
         "shap": shap_vals,
         "predictions": np.asarray(res.predictions, dtype=np.float64),
-        "features": X.astype(np.float64),
+        "features": X,
+        "feature_names": names,
+        "feature_units": units,
         "mean_abs_shap": np.abs(shap_vals).mean(axis=0),
         "point_indices": np.asarray(judged.index, dtype=np.int64)[rows],
         "axis_names": [AXIS_NAMES[a] for a in axes],

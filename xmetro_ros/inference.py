@@ -200,25 +200,35 @@ class ModelSet:
         out = np.empty((q, p, 3))
         if p == 0:
             return out
+        idx, _ = _partition(p, self.set_size, self.partition_seed)
+        sets = Xq[:, idx].reshape(-1, self.set_size, f)  # (Q*K, n, F); point-wise members ignore the grouping
+        ys = self.predict_sets(sets)
+        # Real entries are the first p of each version's flattened sets (only the last set is padded).
+        out[:, idx.reshape(-1)[:p]] = ys.reshape(q, -1, 3)[:, :p]
+        return out
+
+    def predict_sets(self, sets: np.ndarray) -> np.ndarray:
+        """(K, n, F) → (K, n, 3) mm: each of the K sets predicted as one PointNet set (the global feature is the
+        max over its n rows); point-wise members predict every row on its own. Rows must be finite. This is how
+        ``predict`` predicts each set of its partition, so a set of the partition given here gets exactly the
+        published predictions of its points (the explainer relies on it)."""
+        sets = np.asarray(sets, dtype=np.float32)
+        k, n, f = sets.shape
+        out = np.empty((k, n, 3))
         for m in self.members:
             if m.kind == "points":
-                y = m.session.run(None, {"X": Xq.reshape(q * p, f)})[0]
-                out[:, :, m.axes[0]] = y.reshape(q, p)
+                out[:, :, m.axes[0]] = m.session.run(None, {"X": sets.reshape(k * n, f)})[0].reshape(k, n)
                 continue
-            idx, _ = _partition(p, self.set_size, self.partition_seed)
-            sets = Xq[:, idx].reshape(-1, self.set_size, f)  # (Q*K, n, F)
-            ys = np.empty((len(sets), self.set_size, len(m.axes)), np.float32)
-            for i in range(0, len(sets), _SET_CHUNK):
+            ys = np.empty((k, n, len(m.axes)), np.float32)
+            for i in range(0, k, _SET_CHUNK):
                 ys[i : i + _SET_CHUNK] = m.session.run(None, {"X": sets[i : i + _SET_CHUNK]})[0]
-            # Real entries are the first p of each version's flattened sets (only the last set is padded).
-            flat = ys.reshape(q, -1, len(m.axes))[:, :p]
-            perm = idx.reshape(-1)[:p]
-            if len(m.axes) == 3:
-                out[:, perm] = flat
-            else:
-                for j, a in enumerate(m.axes):
-                    out[:, perm, a] = flat[:, :, j]
+            out[:, :, list(m.axes)] = ys
         return out
+
+    @property
+    def has_sets(self) -> bool:
+        """True when a member is a PointNet (a point's prediction depends on the other points of its set)."""
+        return any(m.kind == "sets" for m in self.members)
 
     def __repr__(self) -> str:
         fams = ", ".join(f"{m.family}[{''.join(AXES[a] for a in m.axes)}]" for m in self.members)

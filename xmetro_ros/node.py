@@ -302,8 +302,8 @@ class XmetroCore:
             return resp
         resp.success = True
         resp.message = note or f"explained {len(rows)} points"
-        resp.feature_names = list(self.model.feature_names)
-        resp.feature_units = list(self.model.feature_units)
+        resp.feature_names = r["feature_names"]
+        resp.feature_units = r["feature_units"]
         resp.axis_names = r["axis_names"]
         resp.base_values = (r["base_values"] * 1e-3).tolist()
         resp.point_indices = r["point_indices"].astype(np.uint32).tolist()

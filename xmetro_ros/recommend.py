@@ -130,8 +130,9 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
         model_set: inference.ModelSet (feature_names, predict in mm).
         ctx: FeatureContext of the judged scan's processed points.
         rows: region rows into ``ctx`` (non-empty).
-        before_features: (M, F) the judged features of all rows (the "before" prediction uses them, so it equals
-            the published deviations).
+        before_features: (M, F) the judged features of all rows (the "before" prediction uses them; the region
+            subsample is predicted as its own cloud, like every candidate, so with a PointNet model "before" can
+            differ slightly from the published deviations of the whole scan, but compares like with like).
         pose, scanner, settings: the current head pose (mm), scanner, settings.
         candidates: settings to try; None → ``scanner.study_configurations()``.
         max_seconds: time budget; the search stops (and says so in the note) once it is spent, after at least the

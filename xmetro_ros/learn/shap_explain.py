@@ -1,12 +1,20 @@
 """SHAP explanations of a model set with exact additivity (base + Σ SHAP == prediction).
 
 Scheme: antithetic permutation SHAP (the PermutationExplainer's scheme) over a small background set, run on the
-ONNX model set with every coalition of every point predicted in one batched call. For a permutation π and a
-background row b, features are switched from b to x in the order of π; each feature's SHAP value is the mean of
-its marginal changes. The marginal changes telescope, so Σ_k φ_k = f(x) − mean_b f(b) holds exactly (up to float64
-rounding) for any number of permutations; base = mean_b f(b). With a PointNet member, every coalition state of the
-P explained points is predicted as one cloud with the same set partition as ``ModelSet.predict``, so f(x) is exactly
-the prediction the node publishes.
+ONNX model set with every coalition of every point predicted in batched calls. For a permutation π and a background
+row b, players are switched from b to x in the order of π; each player's SHAP value is the mean of its marginal
+changes. The marginal changes telescope, so Σ_k φ_k = f(x) − mean_b f(b) holds exactly (up to float64 rounding) for
+any number of permutations; base = mean_b f(b), the prediction for a cloud of copies of b.
+
+Two uses:
+* :func:`explain` explains rows X predicted together as one cloud (the study's SHAP plots: test sets).
+* :func:`explain_in_cloud` explains rows of a judged scan exactly as the node published them. With a PointNet member
+  a point's prediction also depends on the other points of its set (the max-pooled global feature), so one more
+  player, :data:`SET_CONTEXT` ("the rest of its set"), switches the other members of the point's own set (the
+  partition ``ModelSet.predict`` used) from b to their actual features. Then base + Σ SHAP equals the published
+  deviation exactly, the base is the same for every point, and the context player's share says how much of a
+  point's prediction its set neighbours carry. Point-wise models need no context player (their prediction depends on
+  the row alone) and get the plain scheme.
 """
 
 from __future__ import annotations
@@ -15,12 +23,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ShapResult", "explain", "global_ranking"]
+__all__ = ["ShapResult", "SET_CONTEXT", "explain", "explain_in_cloud", "global_ranking"]
+
+# Name of the extra player of :func:`explain_in_cloud` for set models: the other points of the point's set.
+SET_CONTEXT = "set_context"
 
 
 @dataclass
 class ShapResult:
-    """base_values (A,) mm, shap (P, F, A) mm, predictions (P, A) mm, for the requested axes (in order)."""
+    """base_values (A,) mm, shap (P, F, A) mm, predictions (P, A) mm, for the requested axes (in order).
+
+    ``feature_names`` names the F players: the model's features, plus :data:`SET_CONTEXT` last where
+    :func:`explain_in_cloud` explained a set model.
+    """
 
     base_values: np.ndarray
     shap: np.ndarray
@@ -44,6 +59,91 @@ def explain(
     at most ``max_background`` rows are used (evenly spaced). ``n_permutations`` is rounded up to an even number
     (antithetic pairs). Raises ValueError for bad shapes, non-finite rows or unknown axes.
     """
+    X = _check_rows(model_set, X, axes)
+    axes = tuple(int(a) for a in axes)
+    bg = _background(model_set, X, background, max_background)
+    perms = _permutations(X.shape[1], n_permutations, seed)
+    P, B, F = len(X), len(bg), X.shape[1]
+    # states[j, b, s] : coalition after s switches of permutation j from background b to x.
+    states = np.empty((len(perms), B, F + 1, P, F), np.float32)
+    for j, perm in enumerate(perms):
+        cur = np.broadcast_to(bg[:, None, :], (B, P, F)).copy()
+        states[j, :, 0] = cur
+        for s, k in enumerate(perm, start=1):
+            cur[:, :, k] = X[None, :, k]
+            states[j, :, s] = cur
+    pred = model_set.predict_batch(states.reshape(-1, P, F)).reshape(len(perms), B, F + 1, P, 3)[..., axes]
+    return _shapley(pred, perms, list(model_set.feature_names), axes)
+
+
+def explain_in_cloud(
+    model_set,
+    X_cloud: np.ndarray,
+    rows: np.ndarray,
+    background: np.ndarray | None = None,
+    axes: tuple[int, ...] = (0, 1, 2),
+    n_permutations: int = 2,
+    max_background: int = 10,
+    seed: int = 0,
+    max_set_rows: int = 4_000_000,
+) -> ShapResult:
+    """SHAP values of the published predictions of ``rows`` of a cloud (see the module docstring).
+
+    X_cloud: (M, F) finite feature rows predicted together by ``model_set.predict`` (a judged scan's finite rows,
+    in order); rows: (P,) indices into it. For a set model the background is thinned (evenly spaced) so that at most
+    ``max_set_rows`` feature rows are predicted; additivity is exact whatever the background. Raises ValueError for
+    bad shapes, non-finite rows, rows out of range or unknown axes.
+    """
+    X_cloud = np.asarray(X_cloud, np.float32)
+    rows = np.asarray(rows, np.int64).reshape(-1)
+    if X_cloud.ndim != 2 or X_cloud.shape[1] != len(model_set.feature_names):
+        raise ValueError(f"explain: the cloud must be (M, {len(model_set.feature_names)}), got {X_cloud.shape}")
+    if len(rows) and (rows.min() < 0 or rows.max() >= len(X_cloud)):
+        raise ValueError(f"explain: rows out of range [0, {len(X_cloud)})")
+    if not model_set.has_sets:
+        return explain(model_set, X_cloud[rows] if len(rows) else X_cloud[:0], background, axes=axes,
+                       n_permutations=n_permutations, max_background=max_background, seed=seed)
+    if not np.all(np.isfinite(X_cloud)):
+        raise ValueError("explain: the cloud has non-finite features (predict leaves them out of every set)")
+    X = _check_rows(model_set, X_cloud[rows] if len(rows) else X_cloud[:0], axes)
+    axes = tuple(int(a) for a in axes)
+    from .pointnet import partition_sets
+
+    P, F, M, n = len(X), X.shape[1], len(X_cloud), model_set.set_size
+    idx, _ = partition_sets(M, n, model_set.partition_seed)
+    set_of = np.empty(M, np.int64)
+    set_of[idx.reshape(-1)[:M]] = np.arange(M) // n  # the real entries come first, set by set
+    members = idx[set_of[rows]]  # (P, n) cloud rows of each explained point's set (padding repeats members)
+    is_self = members == rows[:, None]  # where the point itself sits (more than once if padded with itself)
+    first = is_self.argmax(axis=1)
+    perms = _permutations(F + 1, n_permutations, seed)  # players: F features, then the set context
+    steps = F + 2
+    budget_b = max(1, int(max_set_rows) // max(1, P * len(perms) * steps * n))
+    bg = _background(model_set, X, background, min(max_background, budget_b))
+    B, J = len(bg), len(perms)
+    # Per permutation: the point's feature mask and the context flag after s switches (s = 0 .. F+1).
+    on = np.zeros((J, steps, F + 1), bool)
+    for j, perm in enumerate(perms):
+        for s, k in enumerate(perm, start=1):
+            on[j, s:, k] = True
+    pred = np.empty((J, B, steps, P, len(axes)))
+    chunk = max(1, 250_000 // (J * B * steps * n))  # points per batch: ~250k feature rows per ONNX call
+    for c0 in range(0, P, chunk):
+        c = slice(c0, min(P, c0 + chunk))
+        pc = c.stop - c.start
+        actual = X_cloud[members[c]]  # (pc, n, F)
+        # Sets of every state: the context rows at b (off) or actual (on), the point's own rows at the mix.
+        sets = np.where(on[:, None, :, None, None, None, F], actual[None, None, None],
+                        bg[None, :, None, None, None, :])  # (J, B, steps, pc, n, F)
+        own = np.where(on[:, None, :, None, :F], X[None, None, None, c], bg[None, :, None, None, :])  # (J,B,S,pc,F)
+        sel = np.broadcast_to(is_self[c][None, None, None, :, :, None], sets.shape)
+        sets[sel] = np.broadcast_to(own[:, :, :, :, None, :], sets.shape)[sel]
+        y = model_set.predict_sets(sets.reshape(-1, n, F)).reshape(J, B, steps, pc, n, 3)
+        pred[:, :, :, c] = y[:, :, :, np.arange(pc), first[c]][..., axes]
+    return _shapley(pred, perms, list(model_set.feature_names) + [SET_CONTEXT], axes)
+
+
+def _check_rows(model_set, X: np.ndarray, axes) -> np.ndarray:
     X = np.asarray(X, np.float32)
     n_f = len(model_set.feature_names)
     if X.ndim != 2 or X.shape[1] != n_f:
@@ -55,6 +155,13 @@ def explain(
     axes = tuple(int(a) for a in axes)
     if not axes or any(a not in (0, 1, 2) for a in axes):
         raise ValueError(f"explain: axes must be a non-empty subset of (0, 1, 2), got {axes}")
+    return X
+
+
+def _background(model_set, X: np.ndarray, background: np.ndarray | None, max_background: int) -> np.ndarray:
+    """(B, F) reference rows: given, else the card's stored background, else the column medians of X; at most
+    ``max_background`` rows (evenly spaced)."""
+    n_f = X.shape[1]
     if background is None:
         stored = model_set.card.get("background")
         background = np.asarray(stored, np.float32) if stored else np.median(X, axis=0, keepdims=True)
@@ -62,33 +169,32 @@ def explain(
     if bg.ndim != 2 or bg.shape[1] != n_f or len(bg) == 0 or not np.all(np.isfinite(bg)):
         raise ValueError(f"explain: background must be finite (B, {n_f}) with B ≥ 1, got {bg.shape}")
     if len(bg) > max_background:
-        bg = bg[np.linspace(0, len(bg) - 1, max_background).round().astype(int)]
+        bg = bg[np.linspace(0, len(bg) - 1, max(1, max_background)).round().astype(int)]
+    return bg
 
+
+def _permutations(n_players: int, n_permutations: int, seed: int) -> list[np.ndarray]:
+    """Antithetic pairs of random player orders (``n_permutations`` rounded up to an even number)."""
     rng = np.random.default_rng(seed)
-    n_pairs = max(1, (int(n_permutations) + 1) // 2)
     perms = []
-    for _ in range(n_pairs):
-        p = rng.permutation(n_f)
+    for _ in range(max(1, (int(n_permutations) + 1) // 2)):
+        p = rng.permutation(n_players)
         perms += [p, p[::-1]]
-    P, B, F = len(X), len(bg), n_f
-    # states[j, b, s] : coalition after s switches of permutation j from background b to x.
-    states = np.empty((len(perms), B, F + 1, P, F), np.float32)
-    for j, perm in enumerate(perms):
-        cur = np.broadcast_to(bg[:, None, :], (B, P, F)).copy()
-        states[j, :, 0] = cur
-        for s, k in enumerate(perm, start=1):
-            cur[:, :, k] = X[None, :, k]
-            states[j, :, s] = cur
-    pred = model_set.predict_batch(states.reshape(-1, P, F)).reshape(len(perms), B, F + 1, P, 3)[..., axes]
-    deltas = np.diff(pred, axis=2)  # (J, B, F, P, A): change when the s-th feature of the permutation switches
-    phi = np.zeros((P, F, len(axes)))
+    return perms
+
+
+def _shapley(pred: np.ndarray, perms: list[np.ndarray], names: list[str], axes: tuple[int, ...]) -> ShapResult:
+    """SHAP values from the predictions pred (J, B, players + 1, P, A) of every coalition state."""
+    J, B, S, P, A = pred.shape
+    deltas = np.diff(pred, axis=2)  # (J, B, players, P, A): change when the s-th player of the permutation switches
+    phi = np.zeros((P, S - 1, A))
     for j, perm in enumerate(perms):
         phi[:, perm, :] += deltas[j].sum(axis=0).transpose(1, 0, 2)
-    phi /= len(perms) * B
+    phi /= J * B
     base = pred[:, :, 0].mean(axis=(0, 1, 2))  # f(b): the same for every point (a cloud of copies of b)
-    predictions = pred[0, 0, F]  # f(x): identical for every j, b
-    return ShapResult(base_values=np.asarray(base), shap=phi, predictions=predictions,
-                      feature_names=list(model_set.feature_names), axes=axes)
+    predictions = pred[0, 0, S - 1]  # f(x): identical for every j, b
+    return ShapResult(base_values=np.asarray(base), shap=phi, predictions=predictions, feature_names=names,
+                      axes=axes)
 
 
 def global_ranking(shap_values: np.ndarray, feature_names: list[str]) -> list[tuple[str, float]]:
