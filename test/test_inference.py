@@ -187,3 +187,31 @@ def test_explain_in_cloud_explains_the_published_predictions(trained):
     np.testing.assert_allclose(r2.predictions, pn.predict(X2)[[1200, 1233]], rtol=0, atol=1e-6)
     with pytest.raises(ValueError, match="out of range"):
         explain_in_cloud(pn, X, np.array([1200]))
+
+
+def test_node_processing_path_never_imports_torch():
+    """The live path (decode → preprocess → features → ONNX Runtime → flags, and the explainer) runs without
+    PyTorch or open3d in the process: each costs ~180 MB of resident memory in the node (docs/node.md)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, numpy as np\n"
+        "import xmetro_ros.node\n"
+        "from xmetro_ros.artifacts import Sphere\n"
+        "from xmetro_ros.explain_service import JudgedScan, explain_rows\n"
+        "from xmetro_ros.inference import ModelSet\n"
+        "from xmetro_ros.scan_handler import HandlerParams, ScanHandler\n"
+        "from xmetro_ros.scanner import ScannerModel, ScanSettings\n"
+        "from xmetro_ros.sim import simulate_scan\n"
+        "scan = simulate_scan(Sphere(radius=17.5), ScanSettings(6.0, 3.0, 0.5), seed=1)\n"
+        "m = ModelSet.load()\n"
+        "r = ScanHandler(m, ScannerModel.load(), HandlerParams()).process(scan, settings_defaulted=False)\n"
+        "j = JudgedScan(0, 'f', int(np.prod(scan.shape)), r.prepared.index, r.prepared.points, r.features,\n"
+        "               r.predictions, None, None, None, 's', m.id)\n"
+        "explain_rows(m, j, j.ok_rows[:5], (0, 1, 2))\n"
+        "print(sorted(k for k in ('torch', 'open3d', 'sklearn', 'catboost', 'shap') if k in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1] == "[]"

@@ -168,7 +168,7 @@ def explain_rows(model_set: Any, judged: JudgedScan, rows: np.ndarray, axes: tup
     names = list(model_set.feature_names)
     units = list(model_set.feature_units)
     if res.feature_names[-1] == SET_CONTEXT and len(res.feature_names) == len(names) + 1:
-        from .learn.pointnet import partition_sets
+        from .pointsets import partition_sets
 
         idx, _ = partition_sets(int(finite.sum()), model_set.set_size, model_set.partition_seed)
         set_of = np.empty(int(finite.sum()), np.int64)

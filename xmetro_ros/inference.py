@@ -43,7 +43,7 @@ class _Member:
 
 
 def _partition(n_points: int, set_size: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    from .learn.pointnet import partition_sets
+    from .pointsets import partition_sets
 
     return partition_sets(n_points, set_size, seed)
 

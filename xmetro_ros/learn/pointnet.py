@@ -25,6 +25,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from ..pointsets import partition_sets
+
 __all__ = ["PointNetReg", "PointNetConfig", "PointNetRegressor", "partition_sets", "sets_by_group", "STUDY_LAYOUT"]
 
 
@@ -71,29 +73,6 @@ class PointNetReg(nn.Module):
 
 
 STUDY_LAYOUT = {"block1": (64, 64), "block2": (64, 128, 1024), "head": (512, 256, 128)}
-
-
-def partition_sets(n_points: int, set_size: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Deterministic partition of ``n_points`` points into sets of ``set_size``.
-
-    Returns (idx (K, set_size) int64 point indices, real (K, set_size) bool): each point appears exactly once as a
-    real entry; the last set is padded by cycling through its own points (max-pool invariant).
-    """
-    if n_points <= 0:
-        raise ValueError("cannot partition an empty set of points")
-    if set_size <= 0:
-        raise ValueError(f"set_size must be positive, got {set_size}")
-    perm = np.random.default_rng(seed).permutation(n_points)
-    k = -(-n_points // set_size)
-    idx = np.empty(k * set_size, dtype=np.int64)
-    idx[:n_points] = perm
-    real = np.zeros(k * set_size, dtype=bool)
-    real[:n_points] = True
-    rem = n_points - (k - 1) * set_size
-    if rem < set_size:
-        last = perm[(k - 1) * set_size :]
-        idx[n_points:] = last[np.arange(set_size - rem) % rem]
-    return idx.reshape(k, set_size), real.reshape(k, set_size)
 
 
 def sets_by_group(groups: np.ndarray, set_size: int, rng: np.random.Generator | int) -> tuple[np.ndarray, np.ndarray]:

@@ -107,7 +107,7 @@ def explain_in_cloud(
         raise ValueError("explain: the cloud has non-finite features (predict leaves them out of every set)")
     X = _check_rows(model_set, X_cloud[rows] if len(rows) else X_cloud[:0], axes)
     axes = tuple(int(a) for a in axes)
-    from .pointnet import partition_sets
+    from ..pointsets import partition_sets
 
     P, F, M, n = len(X), X.shape[1], len(X_cloud), model_set.set_size
     idx, _ = partition_sets(M, n, model_set.partition_seed)

@@ -60,7 +60,7 @@ def load_data(profile: str = "quick", seed: int = 0, data: str | Path | None = N
         kw = dict(prof.campaign)
         items = study_campaign(seed=seed, effects=effects, **kw)[:: prof.campaign_stride]
         t0 = time.perf_counter()
-        scans = [it.simulate() for it in items]
+        scans = [it.simulate() for it in _progress(items, "simulate", "scan")]
         log(f"simulated {len(scans)} scans in {time.perf_counter() - t0:.1f} s")
         manifest = {"source": "simulated", "campaign_stride": prof.campaign_stride, "n_scans": len(scans),
                     "campaign_args": {k: list(v) if isinstance(v, tuple) else v for k, v in kw.items()},
@@ -72,6 +72,15 @@ def load_data(profile: str = "quick", seed: int = 0, data: str | Path | None = N
     log(f"feature table: {len(table.X)} points x {len(table.feature_names)} features "
         f"({time.perf_counter() - t0:.1f} s)")
     return table, manifest
+
+
+def _progress(items, desc: str, unit: str, total: int | None = None):
+    """A tqdm progress bar on stderr (hidden when stderr is not a terminal, e.g. in tests and CI logs)."""
+    import sys
+
+    from tqdm import tqdm
+
+    return tqdm(items, desc=desc, unit=unit, total=total, file=sys.stderr, disable=None)
 
 
 def _draw_metrics(model: FittedModel, X, y, cid, split: Split) -> dict[int, dict]:
@@ -157,6 +166,7 @@ def run_study(
         "splits": {}, "timings_s": {}, "models": {}, "shap": {},
     }
     point_models: dict[str, list[FittedModel]] = {}
+    bar = _progress(None, "train", "family", total=len(splits) * len(families))
     for split_name, split in splits.items():
         tr = split.train
         sm: dict[str, Any] = {"description": SPLIT_DOC[split_name], "n_train": int(len(tr)),
@@ -193,7 +203,9 @@ def run_study(
                 for ax, v in per_axis.items()) + f"  ({dt:.0f} s)")
             if split_name == "point":
                 point_models[fam] = fitted
+            bar.update(1)
         metrics["splits"][split_name] = sm
+    bar.close()
 
     # ONNX model sets of the point-split models, checked against the framework.
     tr = splits["point"].train
@@ -231,9 +243,9 @@ def _shap_and_plots(metrics, point_models, out: Path, X, y, cid, split: Split, n
                     clouds: list | None = None) -> None:
     t0 = time.perf_counter()
     test = split.test[0]
-    clouds = np.unique(cid[test])
-    n_clouds = max(1, prof.shap_points // max(1, int(np.sum(cid[test] == clouds[0]))))
-    pick = np.random.default_rng(0).choice(clouds, min(n_clouds, len(clouds)), replace=False)
+    test_clouds = np.unique(cid[test])
+    n_clouds = max(1, prof.shap_points // max(1, int(np.sum(cid[test] == test_clouds[0]))))
+    pick = np.random.default_rng(0).choice(test_clouds, min(n_clouds, len(test_clouds)), replace=False)
     # PointNet (study layout, else the compact one): our exact-additive explainer on the ONNX model set,
     # one cloud at a time (its points form the sets, as at inference).
     net = "pointnet" if "pointnet" in point_models else ("pointnet_multi" if "pointnet_multi" in point_models else None)
