@@ -407,28 +407,38 @@ def _create_cloud(header: Any, arrays: dict[str, np.ndarray], h: int, w: int) ->
 def _corrected_cloud(msg: PointCloud2, dtype_from_fields: Any, dev_mm: np.ndarray, keep: np.ndarray | None,
                      h: int, w: int) -> PointCloud2:
     """The input cloud (same fields and byte order) with x, y, z + predicted error; unpredicted points unchanged."""
-    add = np.nan_to_num(dev_mm * 1e-3, nan=0.0)
+    add = dev_mm.astype(np.float32) * np.float32(1e-3)
+    add[~np.isfinite(add)] = 0.0
     by = {f.name: f for f in msg.fields}
     ps = int(msg.point_step)
     fx = by["x"]
+    n_out = h * w
+    # The message's own array('B') buffer, filled once (assigning bytes would make the message copy them again).
+    buf = array.array("B", b"\0") * (n_out * ps)
     fast = (not msg.is_bigendian and sys.byteorder == "little" and ps % 4 == 0 and fx.offset % 4 == 0
             and all(by[a].datatype == PointField.FLOAT32 for a in "xyz")
             and by["y"].offset == fx.offset + 4 and by["z"].offset == fx.offset + 8
             and int(msg.row_step) == ps * int(msg.width))
-    if fast:
-        # The common case (our own clouds): one float32 copy of the buffer, x, y, z adjusted in place.
-        rec = np.frombuffer(msg.data, dtype=np.float32).reshape(-1, ps // 4)
-        rec = rec[keep] if keep is not None else rec.copy()
+    if fast and n_out:
+        # The common case (our own clouds): one copy of the (kept) records into the buffer, x, y, z adjusted there.
+        src = np.frombuffer(msg.data, dtype=np.float32).reshape(-1, ps // 4)
+        rec = np.frombuffer(buf, dtype=np.float32).reshape(n_out, ps // 4)
+        if keep is not None:
+            np.take(src, keep, axis=0, out=rec)
+        else:
+            rec[:] = src
         c = fx.offset // 4
-        rec[:, c:c + 3] += add.astype(np.float32)
-    else:
+        rec[:, c:c + 3] += add
+        del rec
+    elif n_out:
         dt = dtype_from_fields(msg.fields, ps, is_bigendian=bool(msg.is_bigendian))
         raw = np.ndarray(shape=(int(msg.height), int(msg.width)), dtype=dt, buffer=msg.data,
                          strides=(int(msg.row_step), ps)).reshape(-1)
         rec = raw[keep] if keep is not None else raw.copy()
         for i, axis in enumerate(("x", "y", "z")):
             rec[axis] = rec[axis] + add[:, i].astype(rec[axis].dtype)
-    out = PointCloud2()
+        np.frombuffer(buf, dtype=np.uint8)[:] = np.ascontiguousarray(rec).reshape(-1).view(np.uint8)
+    out = PointCloud2(check_fields=True)  # adopts buf without a copy (cloud._ADOPT_BUFFER)
     out.header = msg.header
     out.height, out.width = h, w
     out.fields = list(msg.fields)
@@ -436,11 +446,6 @@ def _corrected_cloud(msg: PointCloud2, dtype_from_fields: Any, dev_mm: np.ndarra
     out.point_step = int(msg.point_step)
     out.row_step = int(msg.point_step) * w
     out.is_dense = False
-    # Fill the message's own array('B') buffer (assigning bytes would make the message copy them again).
-    rec = np.ascontiguousarray(rec)
-    buf = array.array("B", b"\0") * rec.nbytes
-    if rec.nbytes:
-        np.frombuffer(buf, dtype=np.uint8)[:] = rec.reshape(-1).view(np.uint8)
     out.data = buf
     return out
 
