@@ -59,8 +59,9 @@ class _Proc:
             self.p.wait(timeout=10)
 
 
-def _publish_all(topics: dict[str, type], proc: _Proc) -> dict[str, list]:
-    """Wait for the recorder to subscribe to every topic, publish N messages on each, wait until recorded."""
+def _publish_all(topics: dict[str, type], proc: _Proc, pad: int = 0) -> dict[str, list]:
+    """Wait for the recorder to subscribe to every topic, publish N messages on each, wait until recorded.
+    ``pad``: length the String messages are padded to."""
     sent: dict[str, list] = {t: [] for t in topics}
     qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
     with NodeSpinner(lambda ctx: rclpy.create_node("bag_test_pub", context=ctx)) as sp:
@@ -70,7 +71,7 @@ def _publish_all(topics: dict[str, type], proc: _Proc) -> dict[str, list]:
         for i in range(N):
             for t, cls in topics.items():
                 if cls is String:
-                    m = String(data=f"msg {i}")
+                    m = String(data=f"msg {i}".ljust(pad, "."))
                 elif cls is ScannerSettings:
                     m = ScannerSettings(lateral_density=1000.0 + i, exposure_time=0.001)
                 else:
@@ -123,3 +124,25 @@ def test_sigkilled_recorder_leaves_completed_chunks_readable(tmp_path: Path):
     got = [m.msg for m in r.messages()]
     assert got == sent["/k/chatter"]
     assert r.report.unfinished_files == [str(out)] and not r.report.lost
+
+
+@pytest.mark.timeout(120)
+def test_sigkilled_recorder_with_real_chunks_keeps_every_closed_chunk(tmp_path: Path):
+    """Chunks of several messages (7,000-byte chunks, ~2 kB messages: 4 per chunk, so 3 chunks of the 15 messages
+    close and 3 messages sit in the open chunk): after SIGKILL every closed chunk reads back, in order, and only the
+    messages of the chunk still open are missing; the reader says the file is unfinished."""
+    out = tmp_path / "killed.mcap"
+    proc = _Proc(["-o", str(out), "--chunk-size", "7000", "--discovery-period", "0.2", "--progress", "0.1",
+                  "/k2/chatter"])
+    try:
+        sent = _publish_all({"/k2/chatter": String}, proc, pad=2000)["/k2/chatter"]
+        proc.p.send_signal(signal.SIGKILL)
+        proc.finish()
+    finally:
+        proc.kill()
+    assert proc.p.returncode == -signal.SIGKILL
+    r = BagReader(out)
+    got = [m.msg for m in r.messages()]
+    assert got == sent[: len(got)]  # an in-order prefix: nothing garbled, nothing out of a closed chunk lost
+    assert 8 <= len(got) < len(sent)  # the closed chunks (>= 2 of 4 messages) are kept; the open one is lost
+    assert r.report.unfinished_files == [str(out)]
