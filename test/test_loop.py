@@ -23,7 +23,7 @@ DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
 def sim_scan(seed: int, effect: str | None = None, mag: float = 0.0, H: int = 40, W: int = 60,
-             noise: float = 0.004, n_pass: int = 4) -> Scan:
+             noise: float = 0.004, n_pass: int = 4, also: dict[str, float] | None = None) -> Scan:
     """A sphere (random radius / placement) scanned by a head looking down; points displaced along the laser ray by
     a declared geometric error (a function of incidence and height) + noise + the undeclared ``effect`` (mm).
     Half the scans run with the head turned 180° about Z (scanning −Y, laser line along −X) and every scan starts a
@@ -49,14 +49,15 @@ def sim_scan(seed: int, effect: str | None = None, mag: float = 0.0, H: int = 40
     tt = (line + rng.integers(0, H)) / 200.0  # s since scan start (200 profiles/s)
     u = sgn * (P[:, 0] - hx)  # along the head's laser line (head X)
     extra = np.zeros(len(P))
-    if effect == "intensity":  # reflectance-dependent range bias
-        extra = mag * (inten - 0.5) * 2
-    elif effect == "pass":  # per-pass offset along the ray
-        extra = mag * rng.normal(0, 1, n_pass)[passid.astype(int)]
-    elif effect == "drift":  # range drift over scan time (a thermal cycle of period 0.15 s)
-        extra = mag * np.sin(2 * np.pi * tt / 0.15)
-    elif effect == "line":  # distortion along the laser line (a ripple of period 2π·6 mm)
-        extra = mag * np.sin(u / 6.0)
+    for eff, m in (({effect: mag} if effect else {}) | (also or {})).items():
+        if eff == "intensity":  # reflectance-dependent range bias
+            extra += m * (inten - 0.5) * 2
+        elif eff == "pass":  # per-pass offset along the ray
+            extra += m * rng.normal(0, 1, n_pass)[passid.astype(int)]
+        elif eff == "drift":  # range drift over scan time (a thermal cycle of period 0.15 s)
+            extra += m * np.sin(2 * np.pi * tt / 0.15)
+        elif eff == "line":  # distortion along the laser line (a ripple of period 2π·6 mm)
+            extra += m * np.sin(u / 6.0)
     P = P + D * (base + extra + rng.normal(0, noise, len(P)))[:, None]
     fields = {"intensity": inten, "line": line, "t": tt, "u": u, "pass": passid}
     pose = HeadPose(np.array([hx, ys[0], 90.0]), np.diag([sgn, sgn, 1.0]))
@@ -96,6 +97,35 @@ def test_loop_names_injected_effect_and_cuts_error(clean_model, effect, mag, see
     after = np.mean([rep["after"][a]["mae"] for a in "xyz"])
     assert after < 0.75 * before, (before, after)
     assert rep["after"]["normal"]["p95"] < rep["before"]["normal"]["p95"]
+
+
+def test_loop_iterates_over_two_effects_then_stops(clean_model):
+    """Two undeclared effects at once (a thermal drift over scan time and a reflectance-dependent range bias): the
+    loop adds one per iteration, both named in the first two, each lowering the held-out error, and stops by itself
+    once nothing significant and useful is left (before its bound of 5 iterations)."""
+    scans = [sim_scan(300 + k, "drift", 0.02, also={"intensity": 0.03}) for k in range(8)]
+    res = run_loop(from_scans(scans), LoopConfig(seed=3, **{**CFG, "max_iter": 5}), given=clean_model)
+    its = res.report["iterations"]
+    added = [it["selected"]["name"] for it in its if it["selected"]]
+    assert set(added[:2]) == {"field_t", "field_intensity"}, [it["candidates"][:3] for it in its]
+    assert its[-1]["selected"] is None and len(its) < 5  # stopped: nothing significant (or useful) left
+    maes = [np.mean([it["before"][a]["mae"] for a in "xyz"]) for it in its[:3]]
+    assert maes[1] < 0.95 * maes[0] and maes[2] < 0.9 * maes[1], maes
+    assert res.added_features[:2] == added[:2]
+
+
+def test_identity_candidate_is_tried_when_continuous_ones_fail(clean_model):
+    """A per-pass offset together with a reflectance bias: the continuous candidates cannot carry the per-pass
+    offsets to unseen scans (they fail the trace-part check), which must not use up the tries of the identity
+    candidate; once the offsets are in, the reflectance bias is still found in a later iteration."""
+    scans = [sim_scan(300 + k, "intensity", 0.03, also={"pass": 0.02}) for k in range(8)]
+    res = run_loop(from_scans(scans), LoopConfig(seed=3, **{**CFG, "max_iter": 4}), given=clean_model)
+    its = res.report["iterations"]
+    assert its[0]["selected"]["name"] == "field_pass" and its[0]["selected"]["correction"] == "offset"
+    assert "field_intensity" in res.added_features
+    before = np.mean([res.report["before"][a]["mae"] for a in "xyz"])
+    after = np.mean([res.report["after"][a]["mae"] for a in "xyz"])
+    assert after < 0.5 * before, (before, after)
 
 
 def test_loop_reports_none_without_effect(clean_model, tmp_path):

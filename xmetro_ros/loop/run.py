@@ -43,7 +43,8 @@ class LoopConfig:
         offset_ridge: ridge (relative) of the per-identity offset fit.
         min_gain: a traced effect is added only if it lowers the squared error of the trace part by this fraction
             (the trace part is held out from model fitting; offsets are cross-fitted); else the next one is tried.
-        max_tries: at most this many significant candidates are tried per iteration.
+        max_tries: at most this many significant candidates of each kind (continuous, identity) are tried per
+            iteration (so failing continuous candidates cannot use up the tries of the identity ones).
         trace: TraceConfig (permutations, alpha, minimum effect, ...).
         seed: seed of the role draw, the model and the trace.
     """
@@ -136,7 +137,7 @@ def error_summary(errors: np.ndarray, normals: np.ndarray) -> dict:
     return d
 
 
-def _ordered(scores, info: dict[str, CandidateInfo], correction: str) -> list:
+def _ordered(scores, info: dict[str, CandidateInfo], correction: str, max_tries: int) -> list:
     """Effects to try, in order: significant *continuous* candidates by score (held out by whole clouds/profiles, so
     they generalise to unseen ones), then significant *identity* candidates by score. Identity candidates are scored
     inside their own groups, which lets them mimic any smooth within-group effect (drift, distortion) — so they come
@@ -144,7 +145,7 @@ def _ordered(scores, info: dict[str, CandidateInfo], correction: str) -> list:
     ok = [s for s in scores if s.significant and not s.in_model]
     cont = [s for s in ok if info[s.name].kind != "identity" and correction != "offset"]
     ident = [s for s in ok if info[s.name].kind == "identity" and correction != "feature"]
-    return sorted(cont, key=lambda s: -s.score) + sorted(ident, key=lambda s: -s.score)
+    return sorted(cont, key=lambda s: -s.score)[:max_tries] + sorted(ident, key=lambda s: -s.score)[:max_tries]
 
 
 def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | None = None) -> LoopResult:
@@ -166,8 +167,8 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
     feat_names = list(data.feature_names)
     X = np.asarray(data.X, dtype=np.float32)
 
-    def fit_model(Xm: np.ndarray, names: list[str]):
-        return fit_family(cfg.family, Xm[A], E[A], names, seed=cfg.seed, iterations=cfg.iterations,
+    def fit_model(Xm: np.ndarray, names: list[str], target: np.ndarray = E):
+        return fit_family(cfg.family, Xm[A], target[A], names, seed=cfg.seed, iterations=cfg.iterations,
                           threads=cfg.threads)
 
     if given is None:
@@ -239,7 +240,7 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
                      "before": metrics(E[C], pred[C], Nrm[C])}
         mse_b = float(((E[B] - pred[B]) ** 2).sum())
         sel = None
-        for cand in _ordered(scores, cand_info, cfg.correction)[: cfg.max_tries]:
+        for cand in _ordered(scores, cand_info, cfg.correction, cfg.max_tries):
             kind = cand_info[cand.name].kind
             if kind == "identity":
                 t_offsets = offsets + [cand.name]
@@ -248,13 +249,15 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
                 t_offsets = offsets
                 t_X = np.hstack([X, cand_vals[cand.name][:, None].astype(np.float32)])
                 t_feats = feat_names + [cand.name]
+                # The model (or the given model's residual corrector) learns what the offsets already added leave
+                # (their current values, then refitted on top below): otherwise it is trained on the per-identity
+                # offsets too, which no feature can carry to unseen profiles or passes.
                 if given is None:
-                    t_model = fit_model(t_X, t_feats)
+                    t_model = fit_model(t_X, t_feats, E - offset_pred)
                     t_model_pred = t_model.predict(t_X)
                 else:
                     t_model = model
-                    corr = fit_family(cfg.family, t_X[A], (E - base_pred)[A], t_feats, seed=cfg.seed,
-                                      iterations=cfg.iterations, threads=cfg.threads)
+                    corr = fit_model(t_X, t_feats, E - base_pred - offset_pred)
                     t_model_pred = base_pred + corr.predict(t_X)
             t_offset_pred, t_summ = offsets_for(t_model_pred, t_offsets)
             t_pred = t_model_pred + t_offset_pred
