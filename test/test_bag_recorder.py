@@ -6,6 +6,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -146,3 +147,59 @@ def test_sigkilled_recorder_with_real_chunks_keeps_every_closed_chunk(tmp_path: 
     assert got == sent[: len(got)]  # an in-order prefix: nothing garbled, nothing out of a closed chunk lost
     assert 8 <= len(got) < len(sent)  # the closed chunks (>= 2 of 4 messages) are kept; the open one is lost
     assert r.report.unfinished_files == [str(out)]
+
+
+def _can_mount_tmpfs() -> bool:
+    import os
+    import shutil
+
+    if os.geteuid() != 0 or not shutil.which("unshare"):
+        return False
+    return subprocess.run(["unshare", "-m", "sh", "-c", "mount -t tmpfs -o size=64k none /mnt"],
+                          capture_output=True).returncode == 0
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.skipif(not _can_mount_tmpfs(), reason="needs root to mount a small tmpfs in a private mount namespace")
+def test_recorder_process_on_a_full_disk(tmp_path: Path):
+    """The real `xmetro record` process writing to a real file system that fills up (a 96 KiB tmpfs in a private
+    mount namespace; ~2 kB messages, 8 kB chunks): it stops with a clear 'No space left' error and exit code 1, and
+    every message of the chunks written before is readable, in order."""
+    outdir = tmp_path / "out"
+    outdir.mkdir()
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    script = ('mount -t tmpfs -o size=96k none "$1" || exit 99; shift; '
+              '"$@"; rc=$?; cp "$DISK/rec.mcap" "$OUTDIR/" 2>/dev/null; exit $rc')
+    args = [sys.executable, "-m", "xmetro_ros.bag.cli", "record", "-o", str(disk / "rec.mcap"), "--chunk-size",
+            "8000", "--discovery-period", "0.2", "--progress", "0.1", "/full/chatter"]
+    env = {**ros_env(), "DISK": str(disk), "OUTDIR": str(outdir)}
+    proc = _Proc.__new__(_Proc)  # the same line collector, around the namespaced command
+    proc.p = subprocess.Popen(["unshare", "-m", "sh", "-c", script, "sh", str(disk), *args], env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc.lines = []
+    proc._t = threading.Thread(target=proc._read, daemon=True)
+    proc._t.start()
+    sent: list = []
+    try:
+        qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
+        with NodeSpinner(lambda ctx: rclpy.create_node("full_disk_pub", context=ctx)) as sp:
+            pub = sp.node.create_publisher(String, "/full/chatter", qos)
+            assert wait_for(lambda: proc.saw("subscribed /full/chatter "), TIMEOUT), proc.lines
+            assert wait_for(lambda: pub.get_subscription_count() > 0, TIMEOUT)
+            for i in range(100):  # ~200 kB: twice what the disk holds
+                m = String(data=f"{i:04d}".ljust(2000, "x"))
+                pub.publish(m)
+                sent.append(m)
+                if proc.p.poll() is not None:
+                    break
+                time.sleep(0.01)
+            text = proc.finish()
+    finally:
+        proc.kill()
+    assert proc.p.returncode == 1, text
+    assert "No space left" in text, text
+    r = BagReader(outdir / "rec.mcap")
+    got = [m.msg for m in r.messages()]
+    assert 8 <= len(got) < len(sent) and got == sent[: len(got)]
+    assert r.report.unfinished_files

@@ -175,8 +175,10 @@ def test_shap_single_axis_families(fitted, table, tmp_path):
 
 def test_shap_truth_on_the_simulator(tmp_path):
     """The explanation follows the simulator's switched-on effects (docs/simulator.md's expected checks):
-    X is led by N_x / ori_x (anisotropy, as in the study), Y by N_y / ori_y / oriCMOS_y (centroid), and R_y is in
-    Z's top 3 with the stand-off effect on and leaves Z's top 5 with it off. CatBoost (fixed hyper-parameters)
+    X is led by N_x / ori_x (anisotropy, as in the study) and loses half its explained error with the anisotropy
+    effect off (far more than Y and Z: anisotropy is X's largest driver, docs/simulator.md), Y by
+    N_y / ori_y / oriCMOS_y (centroid), and R_y is in Z's top 3 with the stand-off effect on and leaves Z's top 5
+    with it off. CatBoost (fixed hyper-parameters)
     explained through its ONNX model set; targets are the simulator's noise-free expected error, so the check is
     about model + explainer, not the noise."""
     from xmetro_ros.dataset import build_table
@@ -185,8 +187,9 @@ def test_shap_truth_on_the_simulator(tmp_path):
     names = list(STUDY_FEATURES)
     from xmetro_ros.sim.campaign import study_campaign
 
-    ranks = {}
-    for label, effects in (("on", None), ("off", {"standoff": {"enabled": False}})):
+    ranks, total = {}, {}
+    for label, effects in (("on", None), ("off", {"standoff": {"enabled": False}}),
+                           ("no_aniso", {"anisotropy": {"enabled": False}})):
         items = study_campaign(seed=0, sphere_diameters=(35, 55), cylinder=False, effects=effects)[::4]
         t = build_table([it.simulate() for it in items], names, max_points_per_cloud=300)
         params = {"depth": 6, "iterations": 200, "learning_rate": 0.1}
@@ -196,11 +199,14 @@ def test_shap_truth_on_the_simulator(tmp_path):
         rows = np.flatnonzero(np.isin(t.cloud_id, [0, len(items) // 2]))
         r = explain(ms, t.X[rows])
         ranks[label] = [[n for n, _ in global_ranking(r.shap[:, :, a], names)] for a in range(3)]
+        total[label] = np.abs(r.shap).mean(axis=0).sum(axis=0)  # (3,) mean |SHAP| summed over features, per axis
     on, off = ranks["on"], ranks["off"]
     assert set(on[0][:2]) == {"N_x", "ori_x"} and set(off[0][:2]) == {"N_x", "ori_x"}, ranks
     assert len(set(on[1][:3]) & {"N_y", "ori_y", "oriCMOS_y"}) >= 2, ranks
     assert "R_y" in on[2][:3], ranks
     assert "R_y" not in off[2][:5], ranks
+    drop = total["no_aniso"] / total["on"]
+    assert drop[0] < 0.6 and drop[0] < drop[1] - 0.2 and drop[0] < drop[2] - 0.2, (drop, ranks)
 
 
 # ---------------------------------------------------------------- CLI, micro profile end to end

@@ -168,11 +168,9 @@ def explain_rows(model_set: Any, judged: JudgedScan, rows: np.ndarray, axes: tup
     names = list(model_set.feature_names)
     units = list(model_set.feature_units)
     if res.feature_names[-1] == SET_CONTEXT and len(res.feature_names) == len(names) + 1:
-        from .pointsets import partition_sets
+        from .pointsets import set_membership
 
-        idx, _ = partition_sets(int(finite.sum()), model_set.set_size, model_set.partition_seed)
-        set_of = np.empty(int(finite.sum()), np.int64)
-        set_of[idx.reshape(-1)[: len(set_of)]] = np.arange(len(set_of)) // model_set.set_size
+        _, set_of = set_membership(int(finite.sum()), model_set.set_size, model_set.partition_seed)
         sizes = np.bincount(set_of)
         X = np.column_stack([X, sizes[set_of[cloud_row[rows]]] - 1.0])
         names.append(SET_CONTEXT)

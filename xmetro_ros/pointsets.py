@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["partition_sets"]
+__all__ = ["partition_sets", "set_membership"]
 
 
 def partition_sets(n_points: int, set_size: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -34,3 +34,12 @@ def partition_sets(n_points: int, set_size: int, seed: int = 0) -> tuple[np.ndar
         last = perm[(k - 1) * set_size :]
         idx[n_points:] = last[np.arange(set_size - rem) % rem]
     return idx.reshape(k, set_size), real.reshape(k, set_size)
+
+
+def set_membership(n_points: int, set_size: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The partition of :func:`partition_sets` and, for every point, the index of the set it is a real entry of:
+    (idx (K, set_size), set_of (n_points,) int64)."""
+    idx, _ = partition_sets(n_points, set_size, seed)
+    set_of = np.empty(n_points, np.int64)
+    set_of[idx.reshape(-1)[:n_points]] = np.arange(n_points) // set_size  # real entries come first, set by set
+    return idx, set_of

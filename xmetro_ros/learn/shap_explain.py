@@ -107,12 +107,10 @@ def explain_in_cloud(
         raise ValueError("explain: the cloud has non-finite features (predict leaves them out of every set)")
     X = _check_rows(model_set, X_cloud[rows] if len(rows) else X_cloud[:0], axes)
     axes = tuple(int(a) for a in axes)
-    from ..pointsets import partition_sets
+    from ..pointsets import set_membership
 
     P, F, M, n = len(X), X.shape[1], len(X_cloud), model_set.set_size
-    idx, _ = partition_sets(M, n, model_set.partition_seed)
-    set_of = np.empty(M, np.int64)
-    set_of[idx.reshape(-1)[:M]] = np.arange(M) // n  # the real entries come first, set by set
+    idx, set_of = set_membership(M, n, model_set.partition_seed)
     members = idx[set_of[rows]]  # (P, n) cloud rows of each explained point's set (padding repeats members)
     is_self = members == rows[:, None]  # where the point itself sits (more than once if padded with itself)
     first = is_self.argmax(axis=1)
