@@ -303,7 +303,9 @@ def _summary_lines(res: DemoResult) -> list[str]:
             q = o.summary_dict()
             vn = ("OK", "WARN", "RESCAN", "ERROR")[q["verdict"]]
             label = res.labels[i] if i < len(res.labels) else f"@{q['stamp_ns'] / 1e9:.0f}s"
-            lines.append(f"  #{i} {label}: {vn:<6s} usable {q['usable_fraction']:.2f}, "
+            # usable_fraction is over the received grid cells (holes included); the verdict uses the valid points
+            of_valid = q["usable_fraction"] * q["points_received"] / max(1, q["points_valid"])
+            lines.append(f"  #{i} {label}: {vn:<6s} usable {of_valid:.2f} of valid points, "
                          f"p95 |e| x/y/z = " + "/".join(f"{v * 1e3:.1f}" for v in q["p95_abs_error_mm"]) + " µm"
                          + (" (settings defaulted)" if q["settings_defaulted"] else ""))
     if res.worst is not None:
