@@ -1,4 +1,4 @@
-"""xmetro_node performance, side by side in one run; writes bench/results/node.json (quoted in docs/node.md).
+"""xmetro_node performance, side by side in one run; writes bench/results/node.json (``--long``: node_long.json), quoted in docs/node.md.
 
 1. In-process per-scan processing (``XmetroCore.judge``: decode → outlier removal + normals → features → ONNX
    inference → flags → verdict → encode ``~/deviations`` and ``~/corrected``) on a simulated organized sphere scan
@@ -316,9 +316,10 @@ def main(argv: list[str] | None = None) -> int:
     result["in_process"] = in_process(args.reps, args.model)
     if not args.skip_dds:
         result["dds"] = over_dds(600.0 if args.long else args.duration, args.model)
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(json.dumps(result, indent=2) + "\n")
-    print(f"wrote {OUT}")
+    out = OUT.with_name("node_long.json") if args.long else OUT  # the 10-minute run keeps its own file
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"wrote {out}")
     return 0
 
 
