@@ -1,4 +1,4 @@
-"""xmetro_node performance, side by side in one run; writes bench/results/node.json (``--long``: node_long.json), quoted in docs/node.md.
+"""xmetro_node performance, side by side in one run; writes bench/results/node.json (``--long``: node_long.json).
 
 1. In-process per-scan processing (``XmetroCore.judge``: decode → outlier removal + normals → features → ONNX
    inference → flags → verdict → encode ``~/deviations`` and ``~/corrected``) on a simulated organized sphere scan
