@@ -110,9 +110,13 @@ class InstallDataWithInterfaces(install_data):
 
 
 class InterfaceDistribution(Distribution):
-    # setuptools' editable install checks has_data() (not has_data_files()): without this the staged libraries
-    # would silently be skipped by `pip install -e .`.
+    # The staged libraries are data files known only after the build, so both checks must say yes: setuptools'
+    # editable install asks has_data(), `install` (inside the wheel build of `pip install .`) asks
+    # has_data_files(); either one saying no silently leaves lib*.so out and the messages fail to import.
     def has_data(self) -> bool:
+        return True
+
+    def has_data_files(self) -> bool:
         return True
 
 
