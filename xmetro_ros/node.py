@@ -583,10 +583,13 @@ class XmetroNode(Node):
         return len(self._queue)
 
     def destroy_node(self) -> None:
-        with self._cv:
-            self._stop = True
-            self._cv.notify_all()
-        self._worker.join(timeout=10.0)
+        # Also called when __init__ failed part-way (then the worker may not exist): never mask the first error.
+        if hasattr(self, "_cv"):
+            with self._cv:
+                self._stop = True
+                self._cv.notify_all()
+        if hasattr(self, "_worker"):
+            self._worker.join(timeout=10.0)
         super().destroy_node()
 
 
