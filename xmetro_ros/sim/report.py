@@ -44,7 +44,8 @@ def contribution_table(diameters=(35.0, 55.0), seed: int = 0) -> dict[str, np.nd
 
 
 def plot_contributions(path: str | Path, diameter: float = 45.0, seed: int = 0) -> Path:
-    """PNG: a 45 mm sphere (default settings) seen from above, coloured by each effect's normal error (um)."""
+    """PNG: a 45 mm sphere (default settings) seen from above, coloured by each effect's normal error (um): one panel
+    per effect and part (systematic, random), then the random and systematic totals."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -56,9 +57,12 @@ def plot_contributions(path: str | Path, diameter: float = 45.0, seed: int = 0) 
     ctx: SimContext = scan.meta["_context"]
     p = ctx.p[ctx.keep]
     n = ctx.n[ctx.keep]
-    panels = [(k, -np.einsum("ij,ij->i", np.broadcast_to(v, ctx.sys.shape)[ctx.keep], n))
+    # one panel per effect and part (systematic, random), then the totals
+    panels = [(f"{k} (systematic)", -np.einsum("ij,ij->i", np.broadcast_to(v, ctx.sys.shape)[ctx.keep], n))
               for k, v in ctx.contributions.items()]
-    panels.append(("random (all noise)", -np.einsum("ij,ij->i", ctx.rand[ctx.keep], n)))
+    panels += [(f"{k} (random)", -np.einsum("ij,ij->i", np.broadcast_to(v, ctx.rand.shape)[ctx.keep], n))
+               for k, v in ctx.noise_contributions.items()]
+    panels.append(("total random", -np.einsum("ij,ij->i", ctx.rand[ctx.keep], n)))
     panels.append(("total systematic", -np.einsum("ij,ij->i", ctx.sys[ctx.keep], n)))
     cols = 4
     rows = int(np.ceil(len(panels) / cols))
