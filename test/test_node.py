@@ -10,6 +10,7 @@ import os
 
 import numpy as np
 import pytest
+from rcl_interfaces.msg import Log
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointField
 from test_node_helpers import (
@@ -177,13 +178,14 @@ def test_bad_inputs_each_reported_and_node_keeps_running(rig):
         assert dev is not None
 
     def bad(msg, code: int, text: str, then_good: bool = True) -> None:
-        mark = client.diag_mark()
+        mark, log_mark = client.diag_mark(), client.log_mark()
         q, _, _ = client.send(msg, outputs=False)
         assert q.verdict == ScanQuality.VERDICT_ERROR, q.message
         assert q.error_code == code, (q.error_code, q.message)
         assert text in q.message, q.message
         diag = client.wait_diag_level(ERROR, mark)
         assert text in diag.status[0].message, diag.status[0].message
+        client.wait_log(Log.ERROR, text, log_mark)  # the node logs it, at ERROR, with the reason
         if then_good:
             good()  # the next good scan is processed normally
 

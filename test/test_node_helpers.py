@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
+from rcl_interfaces.msg import Log
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2, PointField
@@ -104,6 +105,11 @@ class NodeClient:
             node.create_subscription(PointCloud2, f"/{target}/corrected", self._add("corrected"), qos),
             node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, qos),
         ]
+        # the target node's log lines (rcl_interfaces/Log on /rosout): "the node logs it"
+        self.logs: list[Log] = []
+        node.create_subscription(Log, "/rosout", self._on_log, QoSProfile(
+            history=HistoryPolicy.KEEP_LAST, depth=200, reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.VOLATILE))
         self.target = target
 
     def _add(self, name: str) -> Any:
@@ -111,6 +117,24 @@ class NodeClient:
             with self.lock:
                 getattr(self, name).append(msg)
         return cb
+
+    def _on_log(self, msg: Log) -> None:
+        if msg.name == self.target:
+            with self.lock:
+                self.logs.append(msg)
+
+    def log_mark(self) -> int:
+        with self.lock:
+            return len(self.logs)
+
+    def wait_log(self, level: int, text: str, mark: int = 0) -> Log:
+        """The first log line of the target at ``level`` containing ``text`` after ``mark``."""
+        def find() -> Log | None:
+            with self.lock:
+                return next((m for m in self.logs[mark:] if m.level == level and text in m.msg), None)
+        assert wait_for(lambda: find() is not None, TIMEOUT), \
+            f"no log line at level {level} with {text!r}: {[m.msg for m in self.logs[mark:]][-5:]}"
+        return find()
 
     def _on_diag(self, msg: DiagnosticArray) -> None:
         with self.lock:
