@@ -122,3 +122,40 @@ def test_cli_replay_prints_summary(live_node, capsys):
     assert run(args) == 0
     out = capsys.readouterr().out
     assert "1 scans" in out and "cloud_2" in out and "defaulted" in out
+
+
+def test_unknown_message_types_are_skipped_and_listed(live_node, tmp_path):
+    """A bag that also holds a topic of a type not installed here (and a known type that is neither scan nor
+    settings): the scans and settings are replayed, and both other topics are skipped with their types listed in
+    the summary."""
+    from mcap.writer import CompressionType, Writer
+
+    from xmetro_ros.bag import schema
+
+    src = BagReader(BAGS / "demo.mcap")
+    types = src.topics()
+    msgs = [m for m in src.messages(deserialize=False) if m.topic in ("/scan", "/scanner_settings")][:4]
+    assert {m.topic for m in msgs} == {"/scan", "/scanner_settings"}
+    p = tmp_path / "mixed.mcap"
+    with open(p, "wb") as f:
+        w = Writer(f, compression=CompressionType.NONE)
+        w.start(profile="ros2", library="test")
+        ch = {}
+        for topic in ("/scan", "/scanner_settings"):
+            sid = w.register_schema(types[topic], "ros2msg", schema.schema_text(types[topic]).encode())
+            ch[topic] = w.register_channel(topic, "cdr", sid)
+        sw = w.register_schema("acme_msgs/msg/Widget", "ros2msg", b"int32 a\n")
+        ch["/widget"] = w.register_channel("/widget", "cdr", sw)
+        ss = w.register_schema("std_msgs/msg/String", "ros2msg", schema.schema_text("std_msgs/msg/String").encode())
+        ch["/chatter"] = w.register_channel("/chatter", "cdr", ss)
+        for m in msgs:
+            w.add_message(ch[m.topic], m.log_time_ns, bytes(m.raw), m.log_time_ns)
+            w.add_message(ch["/widget"], m.log_time_ns, b"\x00\x01\x00\x00\x07\x00\x00\x00", m.log_time_ns)
+            w.add_message(ch["/chatter"], m.log_time_ns, b"\x00\x01\x00\x00\x02\x00\x00\x00a\x00", m.log_time_ns)
+        w.finish()
+    res = replay_bag(p, fast=True)
+    n_scans = sum(m.topic == "/scan" for m in msgs)
+    assert res.complete and res.scans_sent == n_scans and all(s.quality is not None for s in res.scans)
+    assert res.skipped == {"/widget": "acme_msgs/msg/Widget", "/chatter": "std_msgs/msg/String"}
+    text = res.summary()
+    assert "/widget [acme_msgs/msg/Widget]" in text and "/chatter [std_msgs/msg/String]" in text
