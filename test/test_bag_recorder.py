@@ -29,9 +29,11 @@ N = 15
 class _Proc:
     """The recorder process with its stdout collected line by line in a thread."""
 
-    def __init__(self, args: list[str]) -> None:
-        self.p = subprocess.Popen([sys.executable, "-m", "xmetro_ros.bag.cli", "record", *args], env=ros_env(),
-                                  stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    def __init__(self, args: list[str], wrap: list[str] | None = None, env: dict[str, str] | None = None) -> None:
+        """``args`` of `xmetro record`; ``wrap``: a command the recorder's command line is appended to."""
+        cmd = [*(wrap or []), sys.executable, "-m", "xmetro_ros.bag.cli", "record", *args]
+        self.p = subprocess.Popen(cmd, env={**ros_env(), **(env or {})}, stdout=subprocess.PIPE,
+                                  stderr=subprocess.STDOUT, text=True)
         self.lines: list[str] = []
         self._t = threading.Thread(target=self._read, daemon=True)
         self._t.start()
@@ -109,34 +111,16 @@ def test_record_all_topics_stops_cleanly_on_signal(tmp_path: Path, sig: signal.S
 
 
 @pytest.mark.timeout(120)
-def test_sigkilled_recorder_leaves_completed_chunks_readable(tmp_path: Path):
+@pytest.mark.parametrize("chunk,pad", [(1, 0), (7000, 2000)])
+def test_sigkilled_recorder_keeps_every_closed_chunk(tmp_path: Path, chunk: int, pad: int):
+    """After SIGKILL every closed chunk reads back, in order, and the reader says the file is unfinished.
+    Chunk size 1 byte closes a chunk per message: everything recorded is on disk. 7,000-byte chunks of ~2 kB
+    messages hold 4 messages each: 3 chunks of the 15 messages close, the 3 messages of the open chunk are lost."""
     out = tmp_path / "killed.mcap"
-    # chunk size 1 byte: every message closes its chunk, so each one is on disk once recorded
-    proc = _Proc(["-o", str(out), "--chunk-size", "1", "--discovery-period", "0.2", "--progress", "0.1",
+    proc = _Proc(["-o", str(out), "--chunk-size", str(chunk), "--discovery-period", "0.2", "--progress", "0.1",
                   "/k/chatter"])
     try:
-        sent = _publish_all({"/k/chatter": String}, proc)
-        proc.p.send_signal(signal.SIGKILL)
-        proc.finish()
-    finally:
-        proc.kill()
-    assert proc.p.returncode == -signal.SIGKILL
-    r = BagReader(out)
-    got = [m.msg for m in r.messages()]
-    assert got == sent["/k/chatter"]
-    assert r.report.unfinished_files == [str(out)] and not r.report.lost
-
-
-@pytest.mark.timeout(120)
-def test_sigkilled_recorder_with_real_chunks_keeps_every_closed_chunk(tmp_path: Path):
-    """Chunks of several messages (7,000-byte chunks, ~2 kB messages: 4 per chunk, so 3 chunks of the 15 messages
-    close and 3 messages sit in the open chunk): after SIGKILL every closed chunk reads back, in order, and only the
-    messages of the chunk still open are missing; the reader says the file is unfinished."""
-    out = tmp_path / "killed.mcap"
-    proc = _Proc(["-o", str(out), "--chunk-size", "7000", "--discovery-period", "0.2", "--progress", "0.1",
-                  "/k2/chatter"])
-    try:
-        sent = _publish_all({"/k2/chatter": String}, proc, pad=2000)["/k2/chatter"]
+        sent = _publish_all({"/k/chatter": String}, proc, pad=pad)["/k/chatter"]
         proc.p.send_signal(signal.SIGKILL)
         proc.finish()
     finally:
@@ -145,8 +129,11 @@ def test_sigkilled_recorder_with_real_chunks_keeps_every_closed_chunk(tmp_path: 
     r = BagReader(out)
     got = [m.msg for m in r.messages()]
     assert got == sent[: len(got)]  # an in-order prefix: nothing garbled, nothing out of a closed chunk lost
-    assert 8 <= len(got) < len(sent)  # the closed chunks (>= 2 of 4 messages) are kept; the open one is lost
     assert r.report.unfinished_files == [str(out)]
+    if chunk == 1:
+        assert len(got) == len(sent) and not r.report.lost
+    else:
+        assert 8 <= len(got) < len(sent)  # the closed chunks (>= 2 of 4 messages) are kept; the open one is lost
 
 
 def _can_mount_tmpfs() -> bool:
@@ -171,15 +158,10 @@ def test_recorder_process_on_a_full_disk(tmp_path: Path):
     disk.mkdir()
     script = ('mount -t tmpfs -o size=96k none "$1" || exit 99; shift; '
               '"$@"; rc=$?; cp "$DISK/rec.mcap" "$OUTDIR/" 2>/dev/null; exit $rc')
-    args = [sys.executable, "-m", "xmetro_ros.bag.cli", "record", "-o", str(disk / "rec.mcap"), "--chunk-size",
-            "8000", "--discovery-period", "0.2", "--progress", "0.1", "/full/chatter"]
-    env = {**ros_env(), "DISK": str(disk), "OUTDIR": str(outdir)}
-    proc = _Proc.__new__(_Proc)  # the same line collector, around the namespaced command
-    proc.p = subprocess.Popen(["unshare", "-m", "sh", "-c", script, "sh", str(disk), *args], env=env,
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    proc.lines = []
-    proc._t = threading.Thread(target=proc._read, daemon=True)
-    proc._t.start()
+    args = ["-o", str(disk / "rec.mcap"), "--chunk-size", "8000", "--discovery-period", "0.2", "--progress", "0.1",
+            "/full/chatter"]
+    proc = _Proc(args, wrap=["unshare", "-m", "sh", "-c", script, "sh", str(disk)],
+                 env={"DISK": str(disk), "OUTDIR": str(outdir)})
     sent: list = []
     try:
         qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
