@@ -58,6 +58,8 @@ def sim_scan(seed: int, effect: str | None = None, mag: float = 0.0, H: int = 40
             extra += m * np.sin(2 * np.pi * tt / 0.15)
         elif eff == "line":  # distortion along the laser line (a ripple of period 2π·6 mm)
             extra += m * np.sin(u / 6.0)
+        elif eff == "xscale":  # a ripple of the cell's x axis (e.g. a worn ball screw), period 2π·3 mm in x
+            extra += m * np.sin(P[:, 0] / 3.0)
     P = P + D * (base + extra + rng.normal(0, noise, len(P)))[:, None]
     fields = {"intensity": inten, "line": line, "t": tt, "u": u, "pass": passid}
     pose = HeadPose(np.array([hx, ys[0], 90.0]), np.diag([sgn, sgn, 1.0]))
@@ -87,6 +89,7 @@ def _loop(effect, mag, seed, n=8, given=None, **kw):
     ("intensity", 0.03, 1, "field_intensity"),
     ("pass", 0.02, 0, "field_pass"),
     ("pass", 0.01, 2, "field_pass"),
+    ("xscale", 0.02, 1, "x"),  # no field carries it: only the derived coordinate candidate can
 ])
 def test_loop_names_injected_effect_and_cuts_error(clean_model, effect, mag, seed, expected):
     _, res = _loop(effect, mag, seed, given=clean_model)
