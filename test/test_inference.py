@@ -107,25 +107,27 @@ def test_load_errors_name_the_reason(trained, tmp_path):
     onnx_file.write_bytes(b"not a model")
     with pytest.raises(ModelLoadError, match="sha256"):
         ModelSet.load(d)
-    card = json.loads((d / "card.json").read_text())
-    for m in card["models"]:
-        m.pop("sha256")
-    (d / "card.json").write_text(json.dumps(card))
+    _edit_card(d, lambda card: [m.pop("sha256") for m in card["models"]])
     with pytest.raises(ModelLoadError, match="cannot load"):
         ModelSet.load(d)
-    d = _copy(dt_dir, tmp_path / "mismatch")
-    card = json.loads((d / "card.json").read_text())
-    card["feature_names"] = card["feature_names"][:-1]
-    card.pop("domain")
-    (d / "card.json").write_text(json.dumps(card))
+
+    def drop_last_feature(card):
+        card["feature_names"] = card["feature_names"][:-1]
+        card.pop("domain")
+
+    _edit_card(d := _copy(dt_dir, tmp_path / "mismatch"), drop_last_feature)
     with pytest.raises(ModelLoadError, match="takes 14 features but the card lists 13"):
         ModelSet.load(d)
-    d = _copy(dt_dir, tmp_path / "axes")
-    card = json.loads((d / "card.json").read_text())
-    card["models"] = card["models"][:2]
-    (d / "card.json").write_text(json.dumps(card))
+    _edit_card(d := _copy(dt_dir, tmp_path / "axes"), lambda card: card.update(models=card["models"][:2]))
     with pytest.raises(ModelLoadError, match="exactly once"):
         ModelSet.load(d)
+
+
+def _edit_card(model_dir, edit) -> None:
+    """Apply ``edit`` (in place) to ``model_dir``'s card.json."""
+    card = json.loads((model_dir / "card.json").read_text())
+    edit(card)
+    (model_dir / "card.json").write_text(json.dumps(card))
 
 
 def test_features_checked_against_the_registry(trained, tmp_path):

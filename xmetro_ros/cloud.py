@@ -53,12 +53,19 @@ __all__ = [
     "read_points_numpy",
     "validate_cloud",
     "xyz_fields",
+    "new_cloud_message",
 ]
 
-# Messages we build are created with ``check_fields=True``: only then does the generated ``data`` setter adopt an
-# ``array.array('B')`` as is; with field checks off (rosidl's default) it copies the whole buffer again (~3 ms per
-# 6 MB cloud). The checks on the few scalar fields cost microseconds.
-_ADOPT_BUFFER = True
+
+def new_cloud_message(**fields: Any) -> PointCloud2:
+    """A PointCloud2 whose ``data`` setter adopts an ``array.array('B')`` as is.
+
+    Only a message created with ``check_fields=True`` does: with field checks off (rosidl's default) the generated
+    setter copies the whole buffer again (~3 ms per 6 MB cloud). The checks on the few scalar fields cost
+    microseconds. Every cloud this package builds goes through here.
+    """
+    return PointCloud2(check_fields=True, **fields)
+
 
 _DATATYPES: dict[int, np.dtype] = {
     PointField.INT8: np.dtype(np.int8),
@@ -332,8 +339,7 @@ def _cloud_from_structured(header: Header, fields: Sequence[Any], points: np.nda
     points = np.ascontiguousarray(points)
     data = array.array("B")
     data.frombytes(memoryview(points.reshape(-1).view(np.uint8)))
-    cloud = PointCloud2(
-        check_fields=True,  # see _ADOPT_BUFFER
+    cloud = new_cloud_message(
         header=header,
         height=height,
         width=width,
@@ -343,7 +349,7 @@ def _cloud_from_structured(header: Header, fields: Sequence[Any], points: np.nda
         point_step=points.dtype.itemsize,
         row_step=points.dtype.itemsize * width,
     )
-    cloud.data = data  # set after construction: adopted as is (_ADOPT_BUFFER; ros2/common_interfaces#176)
+    cloud.data = data  # set after construction: adopted as is (new_cloud_message; ros2/common_interfaces#176)
     return cloud
 
 
@@ -531,8 +537,7 @@ def create_cloud_from_arrays(
         del view
     if is_dense is None:
         is_dense = all(np.isfinite(a).all() for _, a, dt, _, _ in cols if dt.kind == "f")
-    cloud = PointCloud2(
-        check_fields=True,  # see _ADOPT_BUFFER
+    cloud = new_cloud_message(
         header=header,
         height=int(height),
         width=int(width),

@@ -167,7 +167,7 @@ def explain_rows(model_set: Any, judged: JudgedScan, rows: np.ndarray, axes: tup
     X = feats[rows].astype(np.float64)
     names = list(model_set.feature_names)
     units = list(model_set.feature_units)
-    if res.feature_names[-1] == SET_CONTEXT and len(res.feature_names) == len(names) + 1:
+    if model_set.has_sets:  # explain_in_cloud added the set-context player last
         from .pointsets import set_membership
 
         _, set_of = set_membership(int(finite.sum()), model_set.set_size, model_set.partition_seed)

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from .pointsets import partition_sets
 from .resources import default_model_dir
 
 __all__ = ["ModelSet", "ModelLoadError", "CARD_FORMAT", "AXES"]
@@ -40,12 +41,6 @@ class _Member:
     axes: tuple[int, ...]
     session: Any
     path: Path
-
-
-def _partition(n_points: int, set_size: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    from .pointsets import partition_sets
-
-    return partition_sets(n_points, set_size, seed)
 
 
 class ModelSet:
@@ -200,7 +195,7 @@ class ModelSet:
         out = np.empty((q, p, 3))
         if p == 0:
             return out
-        idx, _ = _partition(p, self.set_size, self.partition_seed)
+        idx, _ = partition_sets(p, self.set_size, self.partition_seed)
         sets = Xq[:, idx].reshape(-1, self.set_size, f)  # (Q*K, n, F); point-wise members ignore the grouping
         ys = self.predict_sets(sets)
         # Real entries are the first p of each version's flattened sets (only the last set is padded).

@@ -41,6 +41,7 @@ from sensor_msgs.msg import PointCloud2, PointField
 
 from . import flags as fl
 from . import node_params
+from .cloud import new_cloud_message
 from .diagnostics import DiagnosticsState
 from .explain_service import JudgedScan, ScanHistory, ServiceError, axes_from_mask, explain_rows, select_rows
 from .geometry import HeadPose
@@ -438,7 +439,7 @@ def _corrected_cloud(msg: PointCloud2, dtype_from_fields: Any, dev_mm: np.ndarra
         for i, axis in enumerate(("x", "y", "z")):
             rec[axis] = rec[axis] + add[:, i].astype(rec[axis].dtype)
         np.frombuffer(buf, dtype=np.uint8)[:] = np.ascontiguousarray(rec).reshape(-1).view(np.uint8)
-    out = PointCloud2(check_fields=True)  # adopts buf without a copy (cloud._ADOPT_BUFFER)
+    out = new_cloud_message()  # adopts buf without a copy
     out.header = msg.header
     out.height, out.width = h, w
     out.fields = list(msg.fields)

@@ -101,11 +101,11 @@ def explain_in_cloud(
     if len(rows) and (rows.min() < 0 or rows.max() >= len(X_cloud)):
         raise ValueError(f"explain: rows out of range [0, {len(X_cloud)})")
     if not model_set.has_sets:
-        return explain(model_set, X_cloud[rows] if len(rows) else X_cloud[:0], background, axes=axes,
+        return explain(model_set, X_cloud[rows], background, axes=axes,
                        n_permutations=n_permutations, max_background=max_background, seed=seed)
     if not np.all(np.isfinite(X_cloud)):
         raise ValueError("explain: the cloud has non-finite features (predict leaves them out of every set)")
-    X = _check_rows(model_set, X_cloud[rows] if len(rows) else X_cloud[:0], axes)
+    X = _check_rows(model_set, X_cloud[rows], axes)
     axes = tuple(int(a) for a in axes)
     from ..pointsets import set_membership
 
