@@ -26,7 +26,7 @@ INTERFACE_SOURCES = ["CMakeLists.txt", "package.xml", *sorted(str(p.relative_to(
 
 def _ros_prefix() -> Path:
     """The prefix holding the ROS 2 wheels' install tree (the venv, or pip's isolated build environment)."""
-    import rosidl_generator_py  # noqa: PLC0415 - only available at build time
+    import rosidl_generator_py
 
     return Path(rosidl_generator_py.__file__).resolve().parents[4]
 
@@ -35,7 +35,7 @@ def _stamp() -> str:
     h = []
     for rel in INTERFACE_SOURCES:
         h.append(f"{rel}:{(ROOT / rel).stat().st_mtime_ns}:{(ROOT / rel).stat().st_size}")
-    return "\n".join(h + [sys.executable])
+    return "\n".join([*h, sys.executable])
 
 
 def build_interfaces() -> Path:

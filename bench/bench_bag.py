@@ -31,7 +31,7 @@ REPEATS = 5
 def _clouds() -> list:
     rng = np.random.default_rng(0)
     out = []
-    for i in range(N_MSGS):
+    for _i in range(N_MSGS):
         arrays = {k: rng.normal(size=N_POINTS).astype(np.float32) for k in ("x", "y", "z", "intensity")}
         out.append(create_cloud_from_arrays(Header(frame_id="artifact"), arrays, height=1, width=N_POINTS))
     return out

@@ -56,7 +56,7 @@ def _sim(spec, stamp_ns=0, seed=0):
 def _ms(a) -> dict:
     a = np.asarray(a, float) * 1e3
     return {"median_ms": round(float(np.median(a)), 2), "p90_ms": round(float(np.percentile(a, 90)), 2),
-            "min_ms": round(float(a.min()), 2), "n": int(len(a))}
+            "min_ms": round(float(a.min()), 2), "n": len(a)}
 
 
 def _o3d_normals_s(points_mm: np.ndarray) -> float:
@@ -139,7 +139,7 @@ def stages(core, scan, reps: int) -> dict:
         f = time.perf_counter()
         core.judge(msg)
         g = time.perf_counter()
-        for k, v in zip(t, (b - a, c - b, d - c, e - d, f - e, g - f)):
+        for k, v in zip(t, (b - a, c - b, d - c, e - d, f - e, g - f), strict=True):
             t[k].append(v)
     med = {k: round(float(np.median(v)) * 1e3, 1) for k, v in t.items()}
     med["flags_summary_ms_est"] = round(med["process_total"] - med["prepare"] - med["features"] - med["predict"], 1)
@@ -191,7 +191,7 @@ def over_dds(duration: float, model_dir: str) -> dict:
         def on_q(msg: ScanQuality) -> None:
             verdicts.append(int(msg.verdict))
 
-        subs = [node.create_subscription(PointCloud2, "/xmetro_node/deviations", on_dev, rel),  # noqa: F841
+        subs = [node.create_subscription(PointCloud2, "/xmetro_node/deviations", on_dev, rel),
                 node.create_subscription(ScanQuality, "/xmetro_node/quality", on_q, rel)]
         assert wait_for(lambda: pub.get_subscription_count() > 0 and subs[0].get_publisher_count() > 0, 60)
         scan = _sim(BIG, stamp_ns=10**9)

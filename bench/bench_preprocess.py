@@ -60,7 +60,7 @@ def main() -> None:
     scanner = ScannerModel.load()
     scan = sphere_scan()
     flat, _, idx = scan.flat()
-    res: dict = {"n_points": int(len(flat)), "grid": list(scan.shape), "cpus": os.cpu_count(),
+    res: dict = {"n_points": len(flat), "grid": list(scan.shape), "cpus": os.cpu_count(),
                  "machine": platform.machine(), "unit": "ms (best, median of 7; of 3 for the open3d path)",
                  "load_average_start": os.getloadavg(),
                  "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS")}
@@ -92,7 +92,7 @@ def main() -> None:
     # breakdown of the knn path on the distinct cloud (scan order)
     k = max(knn_cfg.nb_neighbors, knn_cfg.knn_normal_neighbors)
     res["knn_breakdown"] = {"dedupe": best(lambda: pp.dedupe(flat))}
-    res["knn_breakdown"]["knn_query_k%d" % k] = best(lambda: pp._knn(flat, k, knn_cfg.knn_workers))
+    res["knn_breakdown"][f"knn_query_k{k}"] = best(lambda: pp._knn(flat, k, knn_cfg.knn_workers))
     dist, nbr, query = pp._knn(flat, k, knn_cfg.knn_workers)
     keep = np.zeros(len(flat), bool)
     keep[query] = pp._sor_keep(dist, knn_cfg.nb_neighbors, knn_cfg.std_ratio)

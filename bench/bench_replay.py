@@ -131,7 +131,8 @@ def main(argv: list[str] | None = None) -> int:
                 stamps: list[float] = []
                 with NodeSpinner(consumer_factory) as sp:
                     res = replay_bag(bag, discovery_timeout=30.0, answer_timeout=30.0,
-                                     log=lambda s: s.startswith("#") and stamps.append(time.monotonic()), **kw)
+                                     log=lambda s, stamps=stamps: s.startswith("#") and stamps.append(time.monotonic()),
+                                     **kw)
                     received = sp.node.received
                 run = {
                     "wall_s_incl_discovery": round(res.wall_s, 3),

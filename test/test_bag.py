@@ -132,7 +132,7 @@ def test_roundtrip_bare_and_split_directory(tmp_path):
         assert r.report.ok and r.report.messages == len(msgs)
         assert r.topics() == {t: ty for t, ty, _m, _t in msgs}
         assert [(m.topic, m.log_time_ns) for m in got] == [(t, ts) for t, _ty, _m, ts in msgs]
-        for m, (_t, _ty, orig, _ts) in zip(got, msgs):
+        for m, (_t, _ty, orig, _ts) in zip(got, msgs, strict=True):
             assert m.msg == orig
     assert len(BagReader(tmp_path / "split").files) > 1
     assert (tmp_path / "split" / "metadata.yaml").is_file()
@@ -174,7 +174,7 @@ def test_reads_rosbag2_talker_and_split_bags():
     r = BagReader(BAGS / "rosbag2_talker")
     msgs = r.read_all()
     assert r.report.ok and len(msgs) == 20
-    assert [m.msg.data for m in msgs if m.topic == "/topic"][0] == "Hello, world! 0"
+    assert next(m.msg.data for m in msgs if m.topic == "/topic") == "Hello, world! 0"
     split = BagReader(BAGS / "rosbag2_split_wbag")
     assert len(split.files) == 5
     n = sum(1 for _ in split.messages())
@@ -204,7 +204,7 @@ def test_rosbags_reads_our_bag_identically(tmp_path):
         theirs = [(c.topic, t, ar.deserialize(raw, c.msgtype)) for c, t, raw in ar.messages()]
         hashes = {c.topic: c.digest for c in ar.connections}
     assert len(theirs) == len(ours) == len(msgs)
-    for o, (topic, t, m) in zip(ours, theirs):
+    for o, (topic, t, m) in zip(ours, theirs, strict=True):
         assert (o.topic, o.log_time_ns) == (topic, t)
         assert _as_plain(o.msg) == _as_plain(m)
     assert hashes["/quality"] == schema.type_hash("xmetro_ros/msg/ScanQuality")
@@ -229,7 +229,7 @@ def test_our_reader_reads_rosbags_bag(tmp_path):
     r = BagReader(tmp_path / "theirs")
     got = r.read_all()
     assert r.report.ok and len(got) == len(msgs)
-    for g, (_topic, _ty, m, t) in zip(got, msgs):
+    for g, (_topic, _ty, m, t) in zip(got, msgs, strict=True):
         assert g.log_time_ns == t and g.msg == m
 
 

@@ -74,7 +74,7 @@ def test_every_datatype_with_padding_either_endianness(order):
     for i, v in enumerate(values):
         got = list(pts[i].tolist())
         assert got[:3] == list(v[:3])
-        for (dt, code, npt, val), g in zip(TYPES, got[3:]):
+        for (_dt, _code, npt, val), g in zip(TYPES, got[3:], strict=True):
             assert g == pytest.approx(val, rel=1e-7)
             assert pts.dtype[f"f_{np.dtype(npt).name}"] == np.dtype(npt)
     # the message is never modified (upstream byteswaps it in place), so a second read is identical

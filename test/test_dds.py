@@ -56,7 +56,7 @@ def test_scanner_settings_and_quality_both_ways(node):
     inbox = Inbox(node, ScannerSettings, f"{NS}/settings_out", qos(1, latched=True))
     pub = node.create_publisher(ScannerSettings, f"{NS}/settings_in", qos(2))
     got = publish_until(pub, sent, inbox, lambda m: stamp_to_ns(m.header.stamp) == 1_700_000_001_000_000_000)
-    settings, pose, sid, frame, stamp = settings_from_msg(got)
+    settings, pose, sid, frame, _stamp = settings_from_msg(got)
     assert settings.as_tuple() == pytest.approx((6.0, 5.0, 0.1))
     np.testing.assert_allclose(pose.position, [0.0, -12.5, 90.0], atol=1e-9)
     assert (sid, frame) == ("xm-ls90", "artifact")

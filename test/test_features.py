@@ -26,7 +26,7 @@ def ctx_for(points: np.ndarray, normals: np.ndarray, pose: HeadPose | None = Non
 
 def row(ctx: F.FeatureContext, i: int = 0) -> dict[str, float]:
     x = F.compute_features(F.STUDY_FEATURES, ctx)
-    return dict(zip(F.STUDY_FEATURES, x[i].tolist()))
+    return dict(zip(F.STUDY_FEATURES, x[i].tolist(), strict=True))
 
 
 def test_study_feature_list():
@@ -119,7 +119,7 @@ def test_registry_errors_and_registration():
 
 def test_degenerate_normals_rejected():
     c = ctx_for([[0.0, 0.0, 10.0], [1.0, 0.0, 10.0]], [[0.0, 0.0, 1.0], [0.0, 0.0, 0.0]])
-    with pytest.raises(F.FeatureError, match="degenerate.*point 1"):
+    with pytest.raises(F.FeatureError, match=r"degenerate.*point 1"):
         F.compute_features(["Inc"], c)
     c = ctx_for([[0.0, 0.0, 10.0]], [[np.nan, 0.0, 1.0]])
     with pytest.raises(F.FeatureError, match="degenerate"):
@@ -149,7 +149,7 @@ def test_from_prepared_with_pose_and_settings():
     scan = Scan(pts, S, HeadPose.looking_down(90.0, y_mm=-10), "xm-ls90", fields={"intensity": np.ones((40, 50))})
     prep: Prepared = prepare_scan(scan, scanner=scanner)
     c = F.FeatureContext.from_prepared(prep)
-    x = F.compute_features(F.STUDY_FEATURES + ["field_intensity"], c)
+    x = F.compute_features([*F.STUDY_FEATURES, "field_intensity"], c)
     assert x.shape == (len(prep), 15) and np.isfinite(x).all()
     # seen from 10 mm higher: R_y grows by 10, normals unchanged
     c2 = c.with_pose(HeadPose.looking_down(100.0, y_mm=-10))

@@ -100,7 +100,7 @@ def test_load_errors_name_the_reason(trained, tmp_path):
         ModelSet.load(tmp_path / "nope")
     d = _copy(pn_dir, tmp_path / "nocard")
     (d / "card.json").unlink()
-    with pytest.raises(ModelLoadError, match="no card.json"):
+    with pytest.raises(ModelLoadError, match=r"no card\.json"):
         ModelSet.load(d)
     d = _copy(pn_dir, tmp_path / "corrupt")
     onnx_file = next(d.glob("*.onnx"))

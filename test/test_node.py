@@ -136,7 +136,7 @@ def test_outputs_match_offline_and_flags(rig):
 
     # live thresholds: a tiny tolerance → every predicted point over tolerance → RESCAN; a huge one → none
     assert all(r.successful for r in _set(node, tolerance=1e-7))
-    q2, dev2, _ = client.send(cloud_of(sim_scan(11 * S)))
+    q2, _dev2, _ = client.send(cloud_of(sim_scan(11 * S)))
     assert q2.verdict == ScanQuality.VERDICT_RESCAN
     assert "fraction" in q2.message
     assert q2.flag_counts[fl.FLAG_BITS.index(fl.FLAG_OVER_TOLERANCE)] >= 0.9 * q2.points_valid
@@ -206,7 +206,7 @@ def test_bad_inputs_each_reported_and_node_keeps_running(rig):
     bad(raw_cloud(xyz[:2], 12, 60, pts.tobytes(), stamp_ns=stamp()), ScanQuality.ERROR_MISSING_FIELD, "'z'")
     bad(raw_cloud([("x", 0, i32), ("y", 4, f32), ("z", 8, f32)], 12, 60, pts.tobytes(), stamp_ns=stamp()),
         ScanQuality.ERROR_MISSING_FIELD, "'x'")
-    bad(raw_cloud(xyz + [("y", 12, f32)], 16, 60, bytes(16 * 60), stamp_ns=stamp()),
+    bad(raw_cloud([*xyz, ("y", 12, f32)], 16, 60, bytes(16 * 60), stamp_ns=stamp()),
         ScanQuality.ERROR_DUPLICATE_FIELD, "duplicate")
     nan = np.full((60, 3), np.nan, np.float32)
     bad(raw_cloud(xyz, 12, 60, nan.tobytes(), stamp_ns=stamp()), ScanQuality.ERROR_NO_VALID_POINTS, "NaN")
@@ -246,13 +246,13 @@ def test_bad_inputs_each_reported_and_node_keeps_running(rig):
     for si in ({"exposure_time": -0.001}, {"lateral_density": 0.0}):
         s_t = stamp()
         client.pub_settings.publish(settings_msg(base, s_t, **si))
-        assert wait_for(lambda: node.core.settings_for(s_t + 1) is not None
+        assert wait_for(lambda s_t=s_t: node.core.settings_for(s_t + 1) is not None
                         and node.core.settings_for(s_t + 1).stamp_ns == s_t, TIMEOUT)
         bad(cloud_of(sim_scan(stamp())), ScanQuality.ERROR_INVALID_SETTINGS, "invalid", then_good=False)
         # the good scans that follow need valid settings again
         v_t = stamp()
         client.pub_settings.publish(settings_msg(base, v_t))
-        assert wait_for(lambda: node.core.settings_for(v_t + 1).stamp_ns == v_t, TIMEOUT)
+        assert wait_for(lambda v_t=v_t: node.core.settings_for(v_t + 1).stamp_ns == v_t, TIMEOUT)
         good()
     f_t = stamp()
     client.pub_settings.publish(settings_msg(base, f_t, frame_id="elsewhere"))
@@ -266,7 +266,7 @@ def test_bad_inputs_each_reported_and_node_keeps_running(rig):
     _set(node, check_frame=True)
     v_t = stamp()
     client.pub_settings.publish(settings_msg(base, v_t))
-    assert wait_for(lambda: node.core.settings_for(v_t + 1).stamp_ns == v_t, TIMEOUT)
+    assert wait_for(lambda v_t=v_t: node.core.settings_for(v_t + 1).stamp_ns == v_t, TIMEOUT)
     good()
     assert node._worker.is_alive()
 

@@ -76,7 +76,7 @@ def test_comparison_reports_any_difference(predicted):
     data = np.frombuffer(bytes(b[1].deviations.data), dtype=np.uint8).copy()
     # dx of the first valid point: offset of field "dx" in the point.
     dx_off = next(f.offset for f in b[1].deviations.fields if f.name == "dx")
-    pts, dev, _ = deviation_arrays(b[1].deviations)
+    _pts, dev, _ = deviation_arrays(b[1].deviations)
     j = int(np.flatnonzero(np.isfinite(dev).all(axis=1))[0])
     k = j * b[1].deviations.point_step + dx_off
     data[k:k + 4] = np.frombuffer(np.float32(dev[j, 0] * 1e-3 + 1e-6).tobytes(), dtype=np.uint8)

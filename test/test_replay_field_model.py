@@ -102,7 +102,7 @@ def test_node_reads_field_from_pointcloud2(node, loop_model, tmp_path):
     devs = [m.msg for m in BagReader(res.recorded).messages(topics=["/xmetro_node/deviations"])]
     assert len(devs) == len(scans)
     actual, resid, inten = [], [], []
-    for scan, dev in zip(scans, devs):
+    for scan, dev in zip(scans, devs, strict=True):
         d = cloud_arrays(dev)
         pub = np.column_stack([d["dx"], d["dy"], d["dz"]]).astype(np.float64) * 1e3  # mm
         pts = scan.points.reshape(-1, 3)

@@ -48,7 +48,7 @@ def test_process_organized_and_unorganized(handler, scan):
     assert q["usable_fraction"] == pytest.approx(np.count_nonzero(res.flags == 0) / n)
     assert q["verdict_name"] == fl.VERDICT_NAMES[q["verdict"]]
     # the same scan unorganized: same points processed (open3d path), one deviation per point
-    pts, fields, idx = scan.flat()
+    pts, fields, _idx = scan.flat()
     flat = Scan(points=pts, settings=scan.settings, pose=scan.pose, scanner_id=scan.scanner_id, fields=fields)
     r2 = handler.process(flat)
     assert r2.deviations.shape == (len(pts), 3) and np.isfinite(r2.deviations).any(axis=1).mean() > 0.8

@@ -76,8 +76,8 @@ def test_bag_layout_is_usable_by_ros_tools(tmp_path):
     assert r.topics() == {"/scan": "sensor_msgs/msg/PointCloud2", "/scanner_settings": "xmetro_ros/msg/ScannerSettings"}
     msgs = r.read_all()
     assert [m.topic for m in msgs] == ["/scanner_settings", "/scan"] * len(scans)
-    for (s, c), scan in zip(zip(msgs[::2], msgs[1::2]), scans):
-        st, pose, sid, frame, t = settings_from_msg(s.msg)
+    for (s, c), scan in zip(zip(msgs[::2], msgs[1::2], strict=True), scans, strict=True):
+        st, _pose, sid, frame, t = settings_from_msg(s.msg)
         assert t < stamp_to_ns(c.msg.header.stamp) and frame == c.msg.header.frame_id and sid == "xm-ls90"
         np.testing.assert_allclose(st.as_tuple(), scan.settings.as_tuple())
         names = [f.name for f in c.msg.fields]

@@ -29,7 +29,7 @@ def test_shipped_bag_matches_the_current_simulator(name: str):
     fresh = _make_bags().make_scans(name, ScannerModel.load())
     shipped = read_scans(ROOT / "bags" / f"{name}.mcap")
     assert len(shipped) == len(fresh)
-    for a, b in zip(fresh, shipped):
+    for a, b in zip(fresh, shipped, strict=True):
         assert a.points.shape == b.points.shape and a.settings == b.settings and a.stamp_ns == b.stamp_ns
         fa, fb = np.isfinite(a.points[..., 0]), np.isfinite(b.points[..., 0])
         assert np.array_equal(fa, fb), f"{name}: other returns — regenerate with `python tools/make_bags.py`"

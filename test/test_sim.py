@@ -135,7 +135,7 @@ def test_centroid_bias_sign_and_size():
     for deg in (-40.0, 40.0):
         art = tilted_plane("x", deg)
         scan = simulate_scan(art, DEF, scanner=SC, effects=only("centroid"), extent_mm=10)
-        pts, exp, _ = kept(scan)
+        _pts, exp, _ = kept(scan)
         ne = np.einsum("ij,j->i", exp, art.n)
         assert np.allclose(ne, c * art.n[1], rtol=0.02, atol=2e-5)
     # Capped at max_mm (0.1 mm depth) even at grazing tilt.

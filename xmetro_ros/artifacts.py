@@ -13,7 +13,7 @@ import numpy as np
 
 from .geometry import unit
 
-__all__ = ["Artifact", "Sphere", "Cylinder", "Plane", "parse_artifact", "ArtifactSpecError"]
+__all__ = ["Artifact", "ArtifactSpecError", "Cylinder", "Plane", "Sphere", "parse_artifact"]
 
 
 class ArtifactSpecError(ValueError):

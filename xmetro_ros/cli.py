@@ -6,7 +6,7 @@ import argparse
 import importlib
 import sys
 
-__all__ = ["main", "build_parser"]
+__all__ = ["build_parser", "main"]
 
 # (module, what it adds) — imported lazily so that `xmetro --help` stays fast and one broken area does not hide
 # the others.

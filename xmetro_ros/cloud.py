@@ -28,6 +28,7 @@ NaN handling: NaN/Inf values are returned as they are (organized clouds keep the
 from __future__ import annotations
 
 import array
+import itertools
 import sys
 from collections import namedtuple
 from collections.abc import Iterable, Mapping, Sequence
@@ -39,21 +40,21 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 
 __all__ = [
-    "CloudFormatError",
     "DUMMY_FIELD_PREFIX",
     "NP_TO_FIELD_TYPE",
+    "CloudFormatError",
     "create_cloud",
     "create_cloud_from_arrays",
     "create_cloud_xyz32",
     "dtype_from_fields",
-    "fields_to_dtype",
     "field_names",
+    "fields_to_dtype",
+    "new_cloud_message",
     "read_points",
     "read_points_list",
     "read_points_numpy",
     "validate_cloud",
     "xyz_fields",
-    "new_cloud_message",
 ]
 
 
@@ -157,7 +158,7 @@ def dtype_from_fields(
             formats.append(dt)
     spec: dict[str, Any] = {"names": names, "formats": formats, "offsets": offsets}
     if point_step is not None:
-        end = max((o + f.itemsize for o, f in zip(offsets, formats)), default=0)
+        end = max((o + f.itemsize for o, f in zip(offsets, formats, strict=True)), default=0)
         if point_step < end:
             raise CloudFormatError("BAD_LAYOUT", f"point_step {point_step} is smaller than its fields ({end} bytes)")
         spec["itemsize"] = int(point_step)
@@ -188,7 +189,7 @@ def _check_layout(cloud: PointCloud2) -> np.dtype:
     dtype = dtype_from_fields(cloud.fields, cloud.point_step, is_bigendian=bool(cloud.is_bigendian))
     # Overlapping fields mean a corrupt description (a reader would silently mix bytes).
     spans = sorted((dtype.fields[k][1], dtype.fields[k][1] + dtype.fields[k][0].itemsize) for k in dtype.names)
-    for (a0, a1), (b0, _b1) in zip(spans, spans[1:]):
+    for (_a0, a1), (b0, _b1) in itertools.pairwise(spans):
         if b0 < a1:
             raise CloudFormatError("BAD_LAYOUT", f"fields overlap at byte offset {b0}")
     packed_row = int(cloud.width) * int(cloud.point_step)
@@ -528,7 +529,7 @@ def create_cloud_from_arrays(
     if n:
         # Fill the message's own buffer through a structured view: one copy per field, no intermediate bytes.
         view = np.frombuffer(data, dtype=dtype, count=n)
-        for name, a, dt, count, _off in cols:
+        for name, a, _dt, count, _off in cols:
             if count == 1:
                 view[name] = a
             else:

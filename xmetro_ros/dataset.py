@@ -24,7 +24,7 @@ from .scan import Scan
 from .scanner import ScannerModel
 from .targets import errors_with_fit
 
-__all__ = ["Table", "StudySplit", "DatasetError", "build_table", "study_split", "cloud_split"]
+__all__ = ["DatasetError", "StudySplit", "Table", "build_table", "cloud_split", "study_split"]
 
 
 class DatasetError(ValueError):
@@ -170,7 +170,7 @@ def build_table(scans: Sequence[Scan], feature_names: Sequence[str], preprocess_
             "artifact": used.to_dict(),
             "n_valid": prep.meta.get("n_valid"),
             "n_kept": n,
-            "n_outliers": int(len(prep.outlier)),
+            "n_outliers": len(prep.outlier),
             "config_index": meta.get("config_index"),
             "seed": meta.get("seed"),
         })

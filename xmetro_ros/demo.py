@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["register", "run", "run_demo", "DemoResult", "default_demo_bag"]
+__all__ = ["DemoResult", "default_demo_bag", "register", "run", "run_demo"]
 
 REGION_RADIUS_M = 0.004
 EXPLAIN_MAX_POINTS = 200

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
-__all__ = ["DiagnosticsState", "STATUS_NAME"]
+__all__ = ["STATUS_NAME", "DiagnosticsState"]
 
 STATUS_NAME = "xmetro_node: scan processing"
 _VERDICT_LEVEL = {0: DiagnosticStatus.OK, 1: DiagnosticStatus.WARN, 2: DiagnosticStatus.WARN,

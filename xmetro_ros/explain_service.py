@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["ServiceError", "JudgedScan", "ScanHistory", "select_rows", "explain_rows", "axes_from_mask"]
+__all__ = ["JudgedScan", "ScanHistory", "ServiceError", "axes_from_mask", "explain_rows", "select_rows"]
 
 AXIS_NAMES = ("x", "y", "z")
 

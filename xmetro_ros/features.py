@@ -22,14 +22,14 @@ from .geometry import HeadPose, point_geometry
 from .scanner import ScannerModel, ScanSettings
 
 __all__ = [
-    "Feature",
-    "FeatureRegistry",
-    "FeatureContext",
-    "FeatureError",
-    "UnknownFeatureError",
-    "MissingFieldError",
     "REGISTRY",
     "STUDY_FEATURES",
+    "Feature",
+    "FeatureContext",
+    "FeatureError",
+    "FeatureRegistry",
+    "MissingFieldError",
+    "UnknownFeatureError",
     "compute_features",
     "required_fields",
 ]

@@ -15,10 +15,10 @@ from scipy.optimize import least_squares
 __all__ = [
     "FitError",
     "SphereFit",
-    "fit_sphere",
-    "fit_sphere_center",
     "fit_circle_2d",
     "fit_cylinder_center",
+    "fit_sphere",
+    "fit_sphere_center",
 ]
 
 

@@ -32,10 +32,25 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = [
-    "FLAG_OUTLIER", "FLAG_GRAZING_INCIDENCE", "FLAG_GRAZING_VIEW", "FLAG_OVER_TOLERANCE", "FLAG_OUT_OF_DOMAIN",
-    "FLAG_UNRELIABLE_NORMAL", "FLAG_INVALID_POINT", "FLAG_BITS", "FLAG_NAMES", "VERDICT_OK", "VERDICT_WARN",
-    "VERDICT_RESCAN", "VERDICT_ERROR", "VERDICT_NAMES", "VerdictThresholds", "flag_counts", "verdict",
-    "angle_flags", "domain_flags",
+    "FLAG_BITS",
+    "FLAG_GRAZING_INCIDENCE",
+    "FLAG_GRAZING_VIEW",
+    "FLAG_INVALID_POINT",
+    "FLAG_NAMES",
+    "FLAG_OUTLIER",
+    "FLAG_OUT_OF_DOMAIN",
+    "FLAG_OVER_TOLERANCE",
+    "FLAG_UNRELIABLE_NORMAL",
+    "VERDICT_ERROR",
+    "VERDICT_NAMES",
+    "VERDICT_OK",
+    "VERDICT_RESCAN",
+    "VERDICT_WARN",
+    "VerdictThresholds",
+    "angle_flags",
+    "domain_flags",
+    "flag_counts",
+    "verdict",
 ]
 
 FLAG_OUTLIER = 1

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["HeadPose", "PointGeometry", "point_geometry", "quat_to_matrix", "matrix_to_quat", "unit"]
+__all__ = ["HeadPose", "PointGeometry", "matrix_to_quat", "point_geometry", "quat_to_matrix", "unit"]
 
 
 def unit(v: np.ndarray, axis: int = -1) -> np.ndarray:

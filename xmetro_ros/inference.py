@@ -23,7 +23,7 @@ import numpy as np
 from .pointsets import partition_sets
 from .resources import default_model_dir
 
-__all__ = ["ModelSet", "ModelLoadError", "CARD_FORMAT", "AXES"]
+__all__ = ["AXES", "CARD_FORMAT", "ModelLoadError", "ModelSet"]
 
 CARD_FORMAT = "xmetro-model-set/1"
 AXES = ("x", "y", "z")
@@ -96,7 +96,7 @@ class ModelSet:
                 raise ModelLoadError(f"model file {p} does not match the card's sha256 (modified or corrupt)")
             try:
                 sess = ort.InferenceSession(str(p), sess_options=opts, providers=["CPUExecutionProvider"])
-            except Exception as e:  # noqa: BLE001 - ORT raises several types for bad files
+            except Exception as e:
                 raise ModelLoadError(f"ONNX Runtime cannot load {p}: {e}") from e
             shape = sess.get_inputs()[0].shape
             if isinstance(shape[-1], int) and shape[-1] != len(card["feature_names"]):

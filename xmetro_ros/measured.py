@@ -25,16 +25,16 @@ import numpy as np
 from .fitting import FitError, fit_sphere, fit_sphere_center
 
 __all__ = [
+    "ATC5_NOMINAL_RADIUS_MM",
+    "NIST_NOMINAL_RADIUS_MM",
     "MeasuredCloud",
-    "MeasuredProfile",
     "MeasuredDataError",
-    "load_nist_sphere",
-    "load_nist_set",
-    "load_atc5",
+    "MeasuredProfile",
     "atc5_sphere_fit",
     "fanuc_wpr_to_matrix",
-    "NIST_NOMINAL_RADIUS_MM",
-    "ATC5_NOMINAL_RADIUS_MM",
+    "load_atc5",
+    "load_nist_set",
+    "load_nist_sphere",
 ]
 
 NIST_NOMINAL_RADIUS_MM = 50.0

@@ -50,8 +50,16 @@ from .scan_handler import HandlerParams, ScanError, ScanHandler
 from .scanner import ScannerModel, ScanSettings, SettingsError
 from .srv import Explain, RecommendSettings
 
-__all__ = ["XmetroNode", "XmetroCore", "CoreOutput", "main", "scan_qos", "settings_qos", "output_qos",
-           "READY_MESSAGE"]
+__all__ = [
+    "READY_MESSAGE",
+    "CoreOutput",
+    "XmetroCore",
+    "XmetroNode",
+    "main",
+    "output_qos",
+    "scan_qos",
+    "settings_qos",
+]
 
 READY_MESSAGE = "xmetro_node ready"
 
@@ -123,7 +131,7 @@ class XmetroCore:
             model = ModelSet.load(values["model_dir"] or None, threads=int(values["inference_threads"]))
             model.check_features(REGISTRY)
             self.model = model
-        except Exception as e:  # noqa: BLE001 - any failure to load leaves the node running, degraded
+        except Exception as e:
             self.degraded = f"model unavailable: {e}"
         self.handler = ScanHandler(self.model, self.scanner, HandlerParams.from_node_values(self.values))
         self._settings: deque[_SettingsEntry] = deque(maxlen=int(values["settings_history"]))
@@ -235,12 +243,12 @@ class XmetroCore:
             return self._error(q, e.code, str(e), n, t0)
         except ScanError as e:
             return self._error(q, e.code, str(e), n, t0)
-        except Exception as e:  # noqa: BLE001 - the node must keep running
+        except Exception as e:
             return self._error(q, "INTERNAL", f"{type(e).__name__}: {e}", n, t0)
 
         try:
             return self._outputs(msg, q, res, entry, stamp_ns, t0)
-        except Exception as e:  # noqa: BLE001 - the node must keep running
+        except Exception as e:
             return self._error(q, "INTERNAL", f"encoding the outputs failed: {type(e).__name__}: {e}", n, t0)
 
     def _outputs(self, msg: PointCloud2, q: ScanQuality, res: Any, entry: _SettingsEntry, stamp_ns: int,
@@ -297,7 +305,7 @@ class XmetroCore:
             resp.success = False
             resp.message = str(e)
             return resp
-        except Exception as e:  # noqa: BLE001
+        except Exception as e:
             resp.success = False
             resp.message = f"explanation failed: {type(e).__name__}: {e}"
             return resp
@@ -357,7 +365,7 @@ class XmetroCore:
             resp.success = False
             resp.message = str(e)
             return resp
-        except Exception as e:  # noqa: BLE001
+        except Exception as e:
             resp.success = False
             resp.message = f"recommendation failed: {type(e).__name__}: {e}"
             return resp
@@ -536,10 +544,10 @@ class XmetroNode(Node):
                 msg, t0 = self._queue.popleft()
             try:
                 self._process(msg, t0)
-            except Exception as e:  # noqa: BLE001 - never let the worker die
+            except Exception as e:
                 try:
                     self.get_logger().error(f"unexpected failure while publishing: {type(e).__name__}: {e}")
-                except Exception:  # noqa: BLE001 - shutting down
+                except Exception:
                     return
 
     def _process(self, msg: PointCloud2, t0: float) -> None:
@@ -565,7 +573,7 @@ class XmetroNode(Node):
         with self._diag_lock:
             try:
                 self.pub_diag.publish(self.diag.build(self.get_clock().now().to_msg()))
-            except Exception:  # noqa: BLE001 - context shutting down
+            except Exception:
                 pass
 
     def _on_explain(self, req: Explain.Request, resp: Explain.Response) -> Explain.Response:

@@ -23,9 +23,20 @@ from typing import Any
 import numpy as np
 
 __all__ = [
-    "PredictError", "PredictResult", "predict_bag", "node_values", "register", "run",
-    "OutputSet", "Tolerance", "read_outputs", "compare_outputs", "cloud_arrays", "quality_dict", "EXACT",
+    "EXACT",
+    "OutputSet",
+    "PredictError",
+    "PredictResult",
+    "Tolerance",
+    "cloud_arrays",
+    "compare_outputs",
     "deviation_arrays",
+    "node_values",
+    "predict_bag",
+    "quality_dict",
+    "read_outputs",
+    "register",
+    "run",
 ]
 
 # PointField datatype → numpy dtype (sensor_msgs/PointField constants 1..8).
@@ -76,7 +87,7 @@ class OutputSet:
             "points_received": int(q.points_received),
             "points_valid": int(q.points_valid),
             "points_flagged": int(q.points_flagged),
-            "flag_counts": dict(zip(list(q.flag_names), [int(c) for c in q.flag_counts])),
+            "flag_counts": dict(zip(list(q.flag_names), [int(c) for c in q.flag_counts], strict=True)),
             "mean_abs_error_mm": [float(v) * 1e3 for v in q.mean_abs_error],
             "p95_abs_error_mm": [float(v) * 1e3 for v in q.p95_abs_error],
             "usable_fraction": float(q.usable_fraction),
@@ -170,7 +181,7 @@ def _cmp_values(path: str, a: Any, b: Any, atol: float, diffs: list[str]) -> Non
         if len(a) != len(b):
             diffs.append(f"{path}: length {len(a)} != {len(b)}")
             return
-        for i, (x, y) in enumerate(zip(a, b)):
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
             _cmp_values(f"{path}[{i}]", x, y, atol, diffs)
     elif isinstance(a, float) or isinstance(b, float):
         if not (a == b or (np.isnan(a) and np.isnan(b)) or abs(float(a) - float(b)) <= atol):
@@ -241,7 +252,8 @@ def compare_outputs(a: list[OutputSet], b: list[OutputSet], tol: Tolerance = EXA
     diffs: list[str] = []
     if len(a) != len(b):
         diffs.append(f"{len(a)} scans != {len(b)} scans")
-    for i, (x, y) in enumerate(zip(a, b)):
+    # Lengths may differ (reported above): compare the common prefix.
+    for i, (x, y) in enumerate(zip(a, b, strict=False)):
         _cmp_quality(i, x.quality, y.quality, tol, diffs)
         for kind in clouds:
             _cmp_cloud(f"scan {i} {kind}", getattr(x, kind), getattr(y, kind), tol, diffs)
@@ -285,7 +297,7 @@ class PredictResult:
         n_def = sum(1 for o in self.outputs if o.quality.settings_defaulted)
         lines = [f"predict {self.bag} → {self.out}: {len(self.outputs)} scans, {self.settings_seen} settings, "
                  f"model {self.model_id or '(none)'}, {n_def} with defaulted settings, {self.wall_s:.2f} s"]
-        for i, (o, topic) in enumerate(zip(self.outputs, self.inputs)):
+        for i, (o, topic) in enumerate(zip(self.outputs, self.inputs, strict=True)):
             q = o.quality
             err = f" error_code={int(q.error_code)}" if int(q.error_code) else ""
             mae = ", ".join(f"{v * 1e3:.4f}" for v in q.mean_abs_error)

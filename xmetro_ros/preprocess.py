@@ -35,16 +35,16 @@ from .scan import Scan
 from .scanner import ScannerModel, ScanSettings
 
 __all__ = [
-    "PreprocessConfig",
-    "Prepared",
-    "PreprocessError",
-    "remove_outliers",
-    "estimate_normals",
-    "grid_outliers",
-    "grid_normals",
-    "dedupe",
-    "prepare_scan",
     "UNORGANIZED_METHODS",
+    "Prepared",
+    "PreprocessConfig",
+    "PreprocessError",
+    "dedupe",
+    "estimate_normals",
+    "grid_normals",
+    "grid_outliers",
+    "prepare_scan",
+    "remove_outliers",
 ]
 
 UNORGANIZED_METHODS = ("knn", "open3d")
@@ -617,7 +617,7 @@ def prepare_scan(
         if not valid.any():
             raise PreprocessError(f"no finite point in the cloud ({len(flat)} points, all NaN/inf)")
     if grid:
-        h, w = scan.shape
+        _h, _w = scan.shape
         x, y, z, gvalid = _planes(pts_all)
         n_valid = int(np.count_nonzero(gvalid))
         if n_valid == 0:

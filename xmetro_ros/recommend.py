@@ -32,8 +32,15 @@ import numpy as np
 from .geometry import HeadPose, matrix_to_quat
 from .scanner import ScannerModel, ScanSettings
 
-__all__ = ["Candidate", "Recommendation", "orientation_grid", "recommend", "subset_context", "coverage_mask",
-           "rotation_xyz"]
+__all__ = [
+    "Candidate",
+    "Recommendation",
+    "coverage_mask",
+    "orientation_grid",
+    "recommend",
+    "rotation_xyz",
+    "subset_context",
+]
 
 
 @dataclass

@@ -34,19 +34,19 @@ from pathlib import Path
 from typing import Any
 
 __all__ = [
+    "POINTCLOUD2",
+    "QUALITY_TYPE",
+    "SETTINGS_TYPE",
+    "VERDICT_NAMES",
     "ReplayError",
     "ReplayResult",
     "ScanOutcome",
-    "replay_bag",
-    "classify_topics",
     "cdr_header",
+    "classify_topics",
     "describe_loss",
     "register",
+    "replay_bag",
     "run",
-    "POINTCLOUD2",
-    "SETTINGS_TYPE",
-    "QUALITY_TYPE",
-    "VERDICT_NAMES",
 ]
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["ReportScan", "write_report", "deviation_map_png", "shap_bar_png"]
+__all__ = ["ReportScan", "deviation_map_png", "shap_bar_png", "write_report"]
 
 
 @dataclass
@@ -72,7 +72,7 @@ def deviation_map_png(points_mm: np.ndarray, panels: list[tuple[str, np.ndarray]
         finite = np.concatenate([n[np.isfinite(n)] for n in norms]) if norms else np.zeros(1)
         vmax_um = float(np.percentile(finite, 99)) if finite.size else 1.0
     fig, axes = plt.subplots(1, len(panels), figsize=(4.4 * len(panels), 3.8), squeeze=False, layout="constrained")
-    for ax, (title, _), n in zip(axes[0], panels, norms):
+    for ax, (title, _), n in zip(axes[0], panels, norms, strict=True):
         ok = np.isfinite(n) & np.isfinite(points_mm).all(axis=1)
         sc = ax.scatter(points_mm[ok, 0], points_mm[ok, 1], c=n[ok], s=2, cmap="viridis", vmin=0.0,
                         vmax=max(vmax_um, 1e-6), rasterized=True)

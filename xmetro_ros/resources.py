@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["package_dir", "config_path", "default_model_dir", "repo_root"]
+__all__ = ["config_path", "default_model_dir", "package_dir", "repo_root"]
 
 
 def package_dir() -> Path:

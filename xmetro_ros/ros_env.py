@@ -15,7 +15,7 @@ from collections.abc import Mapping
 
 from .resources import config_path
 
-__all__ = ["ros_env", "apply_ros_env", "fresh_domain_id", "DDS_PROFILE_NAME"]
+__all__ = ["DDS_PROFILE_NAME", "apply_ros_env", "fresh_domain_id", "ros_env"]
 
 DDS_PROFILE_NAME = "fastdds_localhost.xml"
 

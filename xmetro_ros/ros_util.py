@@ -18,7 +18,7 @@ from rclpy.executors import SingleThreadedExecutor
 
 from .ros_env import apply_ros_env
 
-__all__ = ["NodeSpinner", "NodeProcess", "call_service", "wait_for", "ServiceTimeoutError", "new_context"]
+__all__ = ["NodeProcess", "NodeSpinner", "ServiceTimeoutError", "call_service", "new_context", "wait_for"]
 
 
 class ServiceTimeoutError(TimeoutError):
@@ -100,7 +100,7 @@ def call_service(client: Any, request: Any, timeout: float = 60.0, attempt_timeo
     while True:
         done = threading.Event()
         future = client.call_async(request)
-        future.add_done_callback(lambda _f: done.set())
+        future.add_done_callback(lambda _f, done=done: done.set())
         remaining = deadline - time.monotonic()
         waited = done.wait(max(0.1, min(attempt_timeout, remaining)))
         attempt_timeout *= 2

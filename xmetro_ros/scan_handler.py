@@ -19,7 +19,7 @@ from . import flags as fl
 from .scan import Scan
 from .scanner import ScannerModel, SettingsError
 
-__all__ = ["ScanError", "HandlerParams", "ScanResult", "ScanHandler", "decimation_index", "cap_points"]
+__all__ = ["HandlerParams", "ScanError", "ScanHandler", "ScanResult", "cap_points", "decimation_index"]
 
 # Below this many valid points outlier removal / normals are meaningless.
 _MIN_POINTS_TO_PROCESS = 10

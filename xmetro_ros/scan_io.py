@@ -22,6 +22,7 @@ stamp comes back from the metadata record.
 from __future__ import annotations
 
 import io
+import itertools
 import json
 import logging
 from collections.abc import Iterable, Iterator
@@ -37,8 +38,15 @@ from .geometry import HeadPose
 from .scan import Scan
 from .scanner import ScannerModel, ScanSettings
 
-__all__ = ["write_scans", "read_scans", "iter_scans", "read_manifest", "ScanBagError",
-           "MANIFEST_RECORD", "SCAN_RECORD"]
+__all__ = [
+    "MANIFEST_RECORD",
+    "SCAN_RECORD",
+    "ScanBagError",
+    "iter_scans",
+    "read_manifest",
+    "read_scans",
+    "write_scans",
+]
 
 log = logging.getLogger(__name__)
 
@@ -54,7 +62,7 @@ class ScanBagError(ValueError):
 
 def _stamps(scans: list[Scan]) -> list[int]:
     s = [int(sc.stamp_ns) for sc in scans]
-    if s and s[0] > _SETTINGS_LEAD_NS and all(b > a for a, b in zip(s, s[1:])):
+    if s and s[0] > _SETTINGS_LEAD_NS and all(b > a for a, b in itertools.pairwise(s)):
         return s
     return [(i + 1) * 1_000_000_000 for i in range(len(scans))]
 
@@ -91,7 +99,7 @@ def write_scans(
         w.add_topic(topic, "sensor_msgs/msg/PointCloud2")
         if manifest is not None:
             w.add_metadata(MANIFEST_RECORD, {"json": json.dumps(manifest)})
-        for i, (scan, stamp) in enumerate(zip(scans, stamps)):
+        for i, (scan, stamp) in enumerate(zip(scans, stamps, strict=True)):
             clash = set(scan.fields) & {"x", "y", "z", *_ERROR_FIELDS}
             if clash:
                 raise ValueError(f"scan {i}: field names {sorted(clash)} are reserved")

@@ -16,7 +16,7 @@ import yaml
 
 from .resources import config_path
 
-__all__ = ["ScanSettings", "ScannerModel", "SettingsError", "SETTING_NAMES"]
+__all__ = ["SETTING_NAMES", "ScanSettings", "ScannerModel", "SettingsError"]
 
 SETTING_NAMES = ("lateral_density", "direction_density", "exposure_ms")
 

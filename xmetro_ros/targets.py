@@ -14,15 +14,15 @@ from .artifacts import Artifact, Cylinder, Plane, Sphere
 from .fitting import FitError, fit_circle_2d, fit_cylinder_center, fit_sphere, fit_sphere_center
 
 __all__ = [
+    "MAX_FIT_RMS_FRACTION",
     "FitError",
-    "point_errors",
     "errors_with_fit",
     "fit_artifact_position",
-    "fit_sphere",
-    "fit_sphere_center",
     "fit_circle_2d",
     "fit_cylinder_center",
-    "MAX_FIT_RMS_FRACTION",
+    "fit_sphere",
+    "fit_sphere_center",
+    "point_errors",
 ]
 
 #: A fixed-radius fit whose residual RMS exceeds this fraction of the nominal radius does not describe the data.

@@ -12,7 +12,7 @@ from typing import Any
 
 import yaml
 
-__all__ = ["qos_to_dict", "offered_qos_yaml", "parse_offered_qos", "INFINITE_NS"]
+__all__ = ["INFINITE_NS", "offered_qos_yaml", "parse_offered_qos", "qos_to_dict"]
 
 INFINITE_NS = 2**63 - 1
 _KEYS = ("history", "depth", "reliability", "durability", "deadline", "lifespan", "liveliness",

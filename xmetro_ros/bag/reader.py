@@ -32,7 +32,7 @@ from rclpy.serialization import deserialize_message
 
 from .schema import UnknownTypeError, message_class
 
-__all__ = ["BagReader", "BagMessage", "BagReport", "LostData", "BagFormatError"]
+__all__ = ["BagFormatError", "BagMessage", "BagReader", "BagReport", "LostData"]
 
 log = logging.getLogger(__name__)
 

@@ -20,15 +20,15 @@ from pathlib import Path
 from typing import Any
 
 __all__ = [
-    "UnknownTypeError",
-    "normalize_type",
-    "share_dirs",
-    "msg_file",
-    "msg_dependencies",
-    "schema_text",
-    "type_hash",
-    "message_class",
     "SEPARATOR",
+    "UnknownTypeError",
+    "message_class",
+    "msg_dependencies",
+    "msg_file",
+    "normalize_type",
+    "schema_text",
+    "share_dirs",
+    "type_hash",
 ]
 
 SEPARATOR = "=" * 80
@@ -82,7 +82,7 @@ def msg_file(type_name: str) -> Path:
     return _interface_file(type_name, "msg")
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _msg_text(type_name: str) -> str:
     return msg_file(type_name).read_text()
 
@@ -111,7 +111,7 @@ def msg_dependencies(pkg: str, text: str) -> list[str]:
     return sorted(deps)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def schema_text(type_name: str) -> str:
     """rosbag2's ``ros2msg`` schema text of ``type_name`` (the .msg followed by its dependency definitions)."""
     pkg, _sub, name = normalize_type(type_name)
@@ -131,7 +131,7 @@ def schema_text(type_name: str) -> str:
     return full(pkg, name)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def type_hash(type_name: str) -> str:
     """RIHS01 type hash of ``type_name`` from its installed type description JSON; "" when not installed."""
     pkg, sub, name = normalize_type(type_name)
@@ -145,7 +145,7 @@ def type_hash(type_name: str) -> str:
     return ""
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def message_class(type_name: str) -> Any:
     """The rclpy message class of ``type_name`` (imported as ``pkg.msg.Type``). Raises UnknownTypeError."""
     pkg, sub, name = normalize_type(type_name)

@@ -30,7 +30,7 @@ from rclpy.serialization import serialize_message
 from .qos import offered_qos_yaml
 from .schema import full_type_name, schema_text, type_hash
 
-__all__ = ["BagWriter", "BagWriteError", "ROS_DISTRO", "rosbag2_metadata"]
+__all__ = ["ROS_DISTRO", "BagWriteError", "BagWriter", "rosbag2_metadata"]
 
 ROS_DISTRO = "kilted"
 LIBRARY = "xmetro_ros bag writer (mcap python)"
@@ -188,7 +188,7 @@ class BagWriter:
         self.bare = self.path.suffix == ".mcap"
         if (split_size or split_duration) and self.bare:
             raise ValueError("splitting needs a bag directory as output (a path not ending in .mcap)")
-        if split_size is not None and split_size <= 0 or split_duration is not None and split_duration <= 0:
+        if (split_size is not None and split_size <= 0) or (split_duration is not None and split_duration <= 0):
             raise ValueError("split_size and split_duration must be positive")
         self.split_size = split_size
         self.split_duration_ns = None if split_duration is None else int(split_duration * 1e9)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from .families import FAMILIES, PROFILES
 
-__all__ = ["register", "run_train", "run_export_default", "DEFAULT_FAMILY"]
+__all__ = ["DEFAULT_FAMILY", "register", "run_export_default", "run_train"]
 
 DEFAULT_FAMILY = "pointnet_multi"  # compact 3-axis PointNet: the node's default (fast enough for a 180k scan)
 

@@ -22,7 +22,7 @@ from onnx import TensorProto, helper, numpy_helper
 
 from .families import TARGET_SCALE
 
-__all__ = ["export_pointwise", "export_pointnet", "embed_card", "CARD_KEY", "GLOBAL_FEATURE_DOC"]
+__all__ = ["CARD_KEY", "GLOBAL_FEATURE_DOC", "embed_card", "export_pointnet", "export_pointwise"]
 
 CARD_KEY = "xmetro_card"
 GLOBAL_FEATURE_DOC = (

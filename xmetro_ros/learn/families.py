@@ -17,8 +17,18 @@ from sklearn.preprocessing import StandardScaler
 from sklearn.svm import SVR
 from sklearn.tree import DecisionTreeRegressor
 
-__all__ = ["FAMILIES", "POINTWISE_FAMILIES", "Profile", "PROFILES", "get_profile", "make_estimator", "search_space",
-           "UnknownFamilyError", "TARGET_SCALE", "check_family"]
+__all__ = [
+    "FAMILIES",
+    "POINTWISE_FAMILIES",
+    "PROFILES",
+    "TARGET_SCALE",
+    "Profile",
+    "UnknownFamilyError",
+    "check_family",
+    "get_profile",
+    "make_estimator",
+    "search_space",
+]
 
 TARGET_SCALE = 1000.0  # mm → µm for the scikit-learn / CatBoost families
 
@@ -144,7 +154,7 @@ def validate_space(space: dict[str, Any], family: str) -> None:
         if hasattr(v, "rvs"):
             try:
                 v.rvs(random_state=rng)
-            except Exception as e:  # noqa: BLE001 - report which parameter is broken
+            except Exception as e:
                 raise ValueError(f"{family}: search parameter {k!r} cannot be sampled: {e}") from e
         elif isinstance(v, (list, tuple)):
             if len(v) == 0:

@@ -27,7 +27,7 @@ from torch import nn
 
 from ..pointsets import partition_sets
 
-__all__ = ["PointNetReg", "PointNetConfig", "PointNetRegressor", "partition_sets", "sets_by_group", "STUDY_LAYOUT"]
+__all__ = ["STUDY_LAYOUT", "PointNetConfig", "PointNetReg", "PointNetRegressor", "partition_sets", "sets_by_group"]
 
 
 def _mlp(sizes: Sequence[int], final_relu: bool = True) -> nn.Sequential:

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Split", "study_split", "cloud_split", "mae", "r2", "summarize", "SETTING_FEATURES"]
+__all__ = ["SETTING_FEATURES", "Split", "cloud_split", "mae", "r2", "study_split", "summarize"]
 
 SETTING_FEATURES = ("lateral_density", "direction_density", "exposure_time")
 
@@ -73,7 +73,7 @@ def cloud_split(
     groups = np.unique(key)
     if len(groups) < 2:
         raise ValueError("the cloud split needs at least two configurations (or clouds)")
-    n_out = min(len(groups) - 1, max(1, int(round(held_out_fraction * len(groups)))))
+    n_out = min(len(groups) - 1, max(1, round(held_out_fraction * len(groups))))
     held = set(rng.choice(groups, n_out, replace=False).tolist())
     train, draws = [], [[] for _ in range(n_draws)]
     for members in _clouds(cloud_id):

@@ -8,7 +8,7 @@ import numpy as np
 
 from .families import DISPLAY
 
-__all__ = ["tables_markdown", "deviation_map", "shap_beeswarm"]
+__all__ = ["deviation_map", "shap_beeswarm", "tables_markdown"]
 
 AXIS_NAMES = ("X", "Y", "Z")
 

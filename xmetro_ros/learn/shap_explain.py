@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ShapResult", "SET_CONTEXT", "explain", "explain_in_cloud", "global_ranking"]
+__all__ = ["SET_CONTEXT", "ShapResult", "explain", "explain_in_cloud", "global_ranking"]
 
 # Name of the extra player of :func:`explain_in_cloud` for set models: the other points of the point's set.
 SET_CONTEXT = "set_context"
@@ -138,7 +138,7 @@ def explain_in_cloud(
         sets[sel] = np.broadcast_to(own[:, :, :, :, None, :], sets.shape)[sel]
         y = model_set.predict_sets(sets.reshape(-1, n, F)).reshape(J, B, steps, pc, n, 3)
         pred[:, :, :, c] = y[:, :, :, np.arange(pc), first[c]][..., axes]
-    return _shapley(pred, perms, list(model_set.feature_names) + [SET_CONTEXT], axes)
+    return _shapley(pred, perms, [*list(model_set.feature_names), SET_CONTEXT], axes)
 
 
 def _check_rows(model_set, X: np.ndarray, axes) -> np.ndarray:

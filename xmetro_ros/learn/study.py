@@ -23,7 +23,7 @@ from .protocol import Split, cloud_split, config_keys, mae, r2, study_split, sum
 from .shap_explain import explain, global_ranking
 from .train import FittedModel, _jsonable, export_model_set, fit_model
 
-__all__ = ["load_data", "run_study", "METRICS_SCHEMA", "time_model_set"]
+__all__ = ["METRICS_SCHEMA", "load_data", "run_study", "time_model_set"]
 
 METRICS_SCHEMA = "xmetro-metrics/1"
 SPLIT_DOC = {
@@ -162,15 +162,15 @@ def run_study(
     }
     metrics: dict[str, Any] = {
         "schema": METRICS_SCHEMA, "profile": prof.name, "seed": seed, "manifest": manifest,
-        "n_points": int(len(X)), "n_clouds": int(len(np.unique(cid))), "feature_names": names,
+        "n_points": len(X), "n_clouds": len(np.unique(cid)), "feature_names": names,
         "splits": {}, "timings_s": {}, "models": {}, "shap": {},
     }
     point_models: dict[str, list[FittedModel]] = {}
     bar = _progress(None, "train", "family", total=len(splits) * len(families))
     for split_name, split in splits.items():
         tr = split.train
-        sm: dict[str, Any] = {"description": SPLIT_DOC[split_name], "n_train": int(len(tr)),
-                              "n_test_per_draw": int(len(split.test[0])), "n_draws": len(split.test),
+        sm: dict[str, Any] = {"description": SPLIT_DOC[split_name], "n_train": len(tr),
+                              "n_test_per_draw": len(split.test[0]), "n_draws": len(split.test),
                               "held_out_configurations": split.held_out_groups,
                               "oracle": _oracle(y, oracle, split), "models": {}}
         for fam in families:

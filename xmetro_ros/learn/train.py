@@ -32,7 +32,7 @@ from .families import (
 )
 from .pointnet import STUDY_LAYOUT, PointNetConfig, PointNetRegressor
 
-__all__ = ["FittedModel", "fit_model", "export_model_set", "feature_units", "DOMAIN_MARGIN"]
+__all__ = ["DOMAIN_MARGIN", "FittedModel", "export_model_set", "feature_units", "fit_model"]
 
 DOMAIN_MARGIN = 0.05  # fraction of each feature's training range added on both sides of the domain
 
@@ -240,7 +240,7 @@ def export_model_set(
                                "params": _jsonable(m.params)})
         protos.append((fname, m.to_onnx(len(names))))
     # Hashes are of the final files; compute them by writing with the card (sans hashes) embedded.
-    for (fname, proto), entry in zip(protos, card["models"]):
+    for (fname, proto), entry in zip(protos, card["models"], strict=True):
         data = embed_card(proto, {k: v for k, v in card.items() if k != "models"}).SerializeToString()
         (out / fname).write_bytes(data)
         entry["sha256"] = hashlib.sha256(data).hexdigest()
@@ -258,7 +258,7 @@ def _onnx_check(models: list[FittedModel], out: Path, card: dict, X: np.ndarray)
 
     X = np.asarray(X, np.float32)
     worst = 0.0
-    for m, entry in zip(models, card["models"]):
+    for m, entry in zip(models, card["models"], strict=True):
         sess = ort.InferenceSession(str(out / entry["file"]), providers=["CPUExecutionProvider"])
         if m.kind == "sets":
             idx, _ = partition_sets(len(X), card["set_size"], card["partition_seed"])

@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 
 from .data import LoopData, LoopInputError
 
-__all__ = ["CandidateInfo", "build_candidates", "IDENTITY_FIELD_NAMES", "DERIVED"]
+__all__ = ["DERIVED", "IDENTITY_FIELD_NAMES", "CandidateInfo", "build_candidates"]
 
 IDENTITY_FIELD_NAMES = {"pass", "pass_id", "profile", "profile_id", "pose", "pose_id", "cloud", "cloud_id", "id"}
 

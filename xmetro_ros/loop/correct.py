@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["fit_offsets", "apply_offsets", "cross_fit_offsets", "block_parity"]
+__all__ = ["apply_offsets", "block_parity", "cross_fit_offsets", "fit_offsets"]
 
 
 def block_parity(order: np.ndarray, block_size: int) -> np.ndarray:

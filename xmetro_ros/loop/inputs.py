@@ -19,7 +19,7 @@ from ..geometry import unit
 from ..scan import Scan
 from .data import LoopData, LoopInputError
 
-__all__ = ["from_scans", "from_nist", "from_atc5", "load_inputs", "MEASURED_FEATURES", "detect_kind"]
+__all__ = ["MEASURED_FEATURES", "detect_kind", "from_atc5", "from_nist", "from_scans", "load_inputs"]
 
 # Study features that need no scan settings (measured sets do not declare them).
 MEASURED_FEATURES = ["N_x", "N_y", "N_z", "Inc", "ViewAng", "R_y", "ang"]

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["AxisModel", "fit_family", "GivenModel", "LOOP_FAMILIES"]
+__all__ = ["LOOP_FAMILIES", "AxisModel", "GivenModel", "fit_family"]
 
 LOOP_FAMILIES = ("catboost",)
 

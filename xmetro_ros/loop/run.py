@@ -22,7 +22,7 @@ from .data import LoopData, LoopInputError
 from .model import AxisModel, GivenModel, fit_family
 from .trace import TraceConfig, trace_candidates
 
-__all__ = ["LoopConfig", "LoopResult", "run_loop", "split_roles", "metrics", "error_summary"]
+__all__ = ["LoopConfig", "LoopResult", "error_summary", "metrics", "run_loop", "split_roles"]
 
 ROLE_TRAIN, ROLE_TRACE, ROLE_EVAL = 0, 1, 2
 
@@ -92,8 +92,8 @@ def split_roles(groups: np.ndarray, fractions: tuple[float, float, float], seed:
         f = np.array([0.0, f[1], f[2]])
     f = f / f.sum()
     n = len(ug)
-    n_eval = max(1, int(round(f[2] * n)))
-    n_train = max(1, int(round(f[0] * n))) if need_train else 0
+    n_eval = max(1, round(f[2] * n))
+    n_train = max(1, round(f[0] * n)) if need_train else 0
     n_trace = n - n_eval - n_train
     while n_trace < 2:
         if n_train > 1:
@@ -192,7 +192,7 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
             total += cross_fit_offsets(res, Nrm, cand_vals[name], data.order, cfg.block_size, cfg.offset_ridge)
             uk, w = fit_offsets(res[C], Nrm[C], cand_vals[name][C], cfg.offset_ridge)
             mag = np.linalg.norm(w, axis=1) * 1e3
-            summ[name] = {"n_identities_eval": int(len(uk)), "median_um": float(np.median(mag)),
+            summ[name] = {"n_identities_eval": len(uk), "median_um": float(np.median(mag)),
                           "max_um": float(mag.max())}
         return total, summ
 
@@ -202,7 +202,7 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
         "hold_by": data.hold_by,
         "artifact": data.artifact,
         "n_points": int(data.n),
-        "n_groups": int(len(data.groups)),
+        "n_groups": len(data.groups),
         "roles": {r: {"groups": sorted(data.group_names[g] if g < len(data.group_names) else str(g)
                                        for g in np.unique(data.group[roles == k])),
                       "n_points": int((roles == k).sum())}
@@ -243,12 +243,12 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
         for cand in _ordered(scores, cand_info, cfg.correction, cfg.max_tries):
             kind = cand_info[cand.name].kind
             if kind == "identity":
-                t_offsets = offsets + [cand.name]
+                t_offsets = [*offsets, cand.name]
                 t_model, t_model_pred, t_X, t_feats = model, model_pred, X, feat_names
             else:
                 t_offsets = offsets
                 t_X = np.hstack([X, cand_vals[cand.name][:, None].astype(np.float32)])
-                t_feats = feat_names + [cand.name]
+                t_feats = [*feat_names, cand.name]
                 # The model (or the given model's residual corrector) learns what the offsets already added leave
                 # (their current values, then refitted on top below): otherwise it is trained on the per-identity
                 # offsets too, which no feature can carry to unseen profiles or passes.

@@ -31,7 +31,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from scipy.stats import norm
 
-__all__ = ["TraceConfig", "CandidateScore", "cv_folds", "trace_candidates", "holm", "bin_codes"]
+__all__ = ["CandidateScore", "TraceConfig", "bin_codes", "cv_folds", "holm", "trace_candidates"]
 
 
 @dataclass(frozen=True)
@@ -262,7 +262,7 @@ def trace_candidates(
             description=m.get("description", ""), unit=m.get("unit", ""), in_model=bool(m.get("in_model", False)),
         ))
     adj = holm(np.array([s.p_value for s in scores]))
-    for s, pa in zip(scores, adj):
+    for s, pa in zip(scores, adj, strict=True):
         s.p_holm = float(pa)
         s.significant = bool(pa <= cfg.alpha and s.score >= cfg.min_effect)
     scores.sort(key=lambda s: (not s.significant, -s.score))

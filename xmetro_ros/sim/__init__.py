@@ -9,12 +9,12 @@ from .effects import EFFECTS, effects_table, resolve_effects
 from .scanner_sim import simulate_scan
 
 __all__ = [
-    "simulate_scan",
     "EFFECTS",
     "Effect",
     "EffectConfigError",
-    "UnknownEffectError",
     "SimContext",
-    "resolve_effects",
+    "UnknownEffectError",
     "effects_table",
+    "resolve_effects",
+    "simulate_scan",
 ]

@@ -3,6 +3,8 @@ along the scan axis."""
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 
 from .effect import Effect, SimContext
@@ -24,7 +26,9 @@ class Anisotropy(Effect):
     )
     magnitude = "X bias 10 um at sin(gamma) = 0.5, 20 um at the horizon; distortion 5 um at u = 22 mm; noise 2-5 um"
     drives = "X (N_x, ori_x, position u along the line; lateral_density through the noise)"
-    defaults = {"tilt_mm": 0.02, "distortion_mm": 0.008, "u_norm_mm": 25.0, "quantization": 0.1}
+    defaults: ClassVar[dict[str, float | None]] = {
+        "tilt_mm": 0.02, "distortion_mm": 0.008, "u_norm_mm": 25.0, "quantization": 0.1,
+    }
     nonnegative = ("quantization",)
     positive = ("u_norm_mm",)
 

@@ -31,14 +31,14 @@ __all__ = [
     "ANGLE_BINS",
     "GROSS_MM",
     "TOLERANCE",
-    "load_atc5_profiles",
-    "fit_circle",
-    "clean_and_fit",
+    "ProfileFit",
     "binned_rms",
+    "calibration_table",
+    "clean_and_fit",
+    "fit_circle",
+    "load_atc5_profiles",
     "measured_table",
     "simulated_table",
-    "calibration_table",
-    "ProfileFit",
 ]
 
 ANGLE_BINS: tuple[tuple[float, float], ...] = ((0.0, 60.0), (60.0, 70.0), (70.0, 80.0), (80.0, 90.0))
@@ -164,7 +164,7 @@ def simulated_table(
     h = scan.shape[0]
     y_rows = scan.pose.to_world(np.c_[np.zeros(h), np.arange(h) / scan.settings.direction_density, np.zeros(h)])[:, 1]
     fits = []
-    for k, r in enumerate(radii_mm):
+    for _k, r in enumerate(radii_mm):
         y = np.sqrt(max(SPHERE_RADIUS_MM**2 - min(r, SPHERE_RADIUS_MM) ** 2, 0.0))
         row = int(np.argmin(np.abs(y_rows - y)))
         pts = ph[row]

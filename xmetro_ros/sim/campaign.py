@@ -13,7 +13,7 @@ from ..scanner import ScannerModel, ScanSettings
 from .effects import resolve_effects
 from .scanner_sim import DEFAULT_EXTENT_MM, simulate_scan
 
-__all__ = ["CampaignItem", "study_campaign", "campaign_manifest", "item_seed", "CYLINDER_RADIUS_MM"]
+__all__ = ["CYLINDER_RADIUS_MM", "CampaignItem", "campaign_manifest", "item_seed", "study_campaign"]
 
 CYLINDER_RADIUS_MM = 20.0
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 
 from .effect import Effect, SimContext
@@ -20,7 +22,7 @@ class CentroidBias(Effect):
     )
     magnitude = "12 um at 45 deg tilt, 33 um at 70 deg, capped at 0.1 mm"
     drives = "Y (N_y, oriCMOS_y, ViewAng); its Z share follows N_z"
-    defaults = {"coefficient_mm": 0.012, "max_mm": 0.1, "min_cos": 0.05}
+    defaults: ClassVar[dict[str, float | None]] = {"coefficient_mm": 0.012, "max_mm": 0.1, "min_cos": 0.05}
     nonnegative = ("coefficient_mm", "max_mm")
     positive = ("min_cos",)
 

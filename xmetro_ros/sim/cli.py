@@ -14,7 +14,7 @@ from .campaign import campaign_manifest, study_campaign
 from .effect import EffectConfigError, UnknownEffectError
 from .effects import EFFECTS
 
-__all__ = ["register", "run", "QUICK_CONFIGS"]
+__all__ = ["QUICK_CONFIGS", "register", "run"]
 
 # --quick: three corner/middle configurations (indices into the 27) of the spheres only.
 QUICK_CONFIGS = (0, 13, 26)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 
 from .effect import Effect, EffectConfigError, SimContext
@@ -13,7 +15,7 @@ class DepthOfField(Effect):
     source = "scanner data sheets (measuring range); the study's fixed 90 mm stand-off"
     magnitude = "default range: the scanner model's depth_of_field_mm (55-125 mm for xm-ls90)"
     drives = "point presence only (no error)"
-    defaults = {"near_mm": None, "far_mm": None}
+    defaults: ClassVar[dict[str, float | None]] = {"near_mm": None, "far_mm": None}
     positive = ("near_mm", "far_mm")
 
     def check(self) -> None:

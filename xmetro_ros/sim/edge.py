@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 
 from .effect import Effect, SimContext
@@ -17,7 +19,7 @@ class EdgeEffect(Effect):
     source = "edge effect of spheres scanned by line scanners: Sensors 24(8) 2410, 2024"
     magnitude = "~1.4 um at 70 deg incidence, ~7.5 um at 80 deg, up to max_mm = 40 um at the horizon"
     drives = "X on a sphere (points at the laser-line ends, large |N_x|, Inc near 0); outward (negative error)"
-    defaults = {"max_mm": 0.04, "width_deg": 6.0}
+    defaults: ClassVar[dict[str, float | None]] = {"max_mm": 0.04, "width_deg": 6.0}
     nonnegative = ("max_mm",)
     positive = ("width_deg",)
 

@@ -24,7 +24,7 @@ from ..artifacts import Artifact
 from ..geometry import HeadPose
 from ..scanner import ScannerModel, ScanSettings
 
-__all__ = ["Effect", "EffectConfigError", "UnknownEffectError", "SimContext"]
+__all__ = ["Effect", "EffectConfigError", "SimContext", "UnknownEffectError"]
 
 
 class UnknownEffectError(ValueError):

@@ -16,7 +16,7 @@ from .outliers import Outliers
 from .speckle import Speckle
 from .standoff import Standoff
 
-__all__ = ["EFFECTS", "resolve_effects", "effects_table"]
+__all__ = ["EFFECTS", "effects_table", "resolve_effects"]
 
 # Order matters: exposure sets the signal / noise gains the noise laws use; outliers come last.
 EFFECTS: dict[str, type[Effect]] = {

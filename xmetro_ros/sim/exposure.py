@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 
 from .effect import Effect, SimContext
@@ -21,7 +23,7 @@ class Exposure(Effect):
     )
     magnitude = "x2.2 noise at 0.1 ms; saturation bias ~6-10 um at 2 ms near normal incidence"
     drives = "exposure_time, Inc (via the saturation bias: mostly Z at a sphere's top)"
-    defaults = {
+    defaults: ClassVar[dict[str, float | None]] = {
         "reference_ms": 0.5,
         "snr_exponent": 0.5,
         "short_noise_exponent": 0.5,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 
 from .effect import Effect, SimContext
@@ -22,7 +24,9 @@ class Incidence(Effect):
         "<60 / 60-70 / 70-80 deg bins (with the other effects)"
     )
     drives = "noise only (Inc, ViewAng); point presence at grazing incidence"
-    defaults = {"sigma_mm": 0.0062, "exponent": 1.4, "view_exponent": 0.3, "min_signal": 0.12}
+    defaults: ClassVar[dict[str, float | None]] = {
+        "sigma_mm": 0.0062, "exponent": 1.4, "view_exponent": 0.3, "min_signal": 0.12,
+    }
     positive = ("sigma_mm",)
     nonnegative = ("exponent", "view_exponent", "min_signal")
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 
 from .effect import Effect, SimContext
@@ -18,7 +20,7 @@ class MotionBlur(Effect):
     source = "motion blur of line scanners at speed (Roos-Hoefgeest et al., Sensors 2023; maker guidance: speed x T)"
     magnitude = "b = 0.04-0.33 mm over the study's levels; Y shift up to 10 um at 3 /mm and 2 ms"
     drives = "Y (direction_density x exposure_time, N_y); Z slightly through curvature"
-    defaults = {"substeps": 5, "min_fraction": 0.5, "latency_fraction": 0.03}
+    defaults: ClassVar[dict[str, float | None]] = {"substeps": 5, "min_fraction": 0.5, "latency_fraction": 0.03}
     positive = ("substeps",)
     nonnegative = ("min_fraction", "latency_fraction")
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 
 from .effect import Effect, EffectConfigError, SimContext
@@ -16,7 +18,9 @@ class Outliers(Effect):
     source = "multiple reflections / secondary peaks on shiny curved parts (Roos-Hoefgeest et al., Sensors 2023)"
     magnitude = "~0.3-1 % of points, 0.2-1.5 mm off the surface"
     drives = "noise only (not in expected_error)"
-    defaults = {"fraction": 0.003, "grazing_boost": 2.0, "min_mm": 0.2, "max_mm": 1.5}
+    defaults: ClassVar[dict[str, float | None]] = {
+        "fraction": 0.003, "grazing_boost": 2.0, "min_mm": 0.2, "max_mm": 1.5,
+    }
     nonnegative = ("fraction", "grazing_boost", "min_mm")
     positive = ("max_mm",)
 

@@ -16,7 +16,7 @@ from ..scanner import ScannerModel
 from .effect import SimContext
 from .scanner_sim import simulate_scan
 
-__all__ = ["error_contributions", "contribution_table", "plot_contributions"]
+__all__ = ["contribution_table", "error_contributions", "plot_contributions"]
 
 
 def error_contributions(ctx: SimContext, systematic: bool = True) -> dict[str, np.ndarray]:
@@ -68,7 +68,7 @@ def plot_contributions(path: str | Path, diameter: float = 45.0, seed: int = 0) 
     rows = int(np.ceil(len(panels) / cols))
     fig, axes = plt.subplots(rows, cols, figsize=(2.6 * cols, 2.5 * rows), dpi=70)
     sub = np.random.default_rng(0).permutation(len(p))[:12000]
-    for ax, (name, val) in zip(axes.ravel(), panels):
+    for ax, (name, val) in zip(axes.ravel(), panels, strict=True):
         v = val[sub] * 1e3
         lim = max(np.percentile(np.abs(v), 99), 1e-3)
         sc = ax.scatter(p[sub, 0], p[sub, 1], c=v, s=0.4, cmap="coolwarm", vmin=-lim, vmax=lim, rasterized=True)

@@ -21,7 +21,7 @@ from ..scanner import ScannerModel, ScanSettings, SettingsError
 from .effect import SimContext
 from .effects import EFFECTS, resolve_effects
 
-__all__ = ["simulate_scan", "scan_grid", "ScanGrid", "DEFAULT_EXTENT_MM", "MARGIN_MM"]
+__all__ = ["DEFAULT_EXTENT_MM", "MARGIN_MM", "ScanGrid", "scan_grid", "simulate_scan"]
 
 DEFAULT_EXTENT_MM = 40.0  # scanned length of a cylinder along its axis / side of a plane patch
 MARGIN_MM = 1.0  # extra scan length on each side of the artifact
@@ -239,7 +239,7 @@ def simulate_scan(
         },
         "head_speed_mm_s": float(speed),
         "blur_mm": float(ctx.blur_mm),
-        "n_points": int(len(kidx)),
+        "n_points": len(kidx),
         "n_outliers": int(ctx.stats.get("outliers", 0)),
     }
     if keep_context:

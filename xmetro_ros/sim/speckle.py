@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
@@ -34,7 +36,9 @@ class Speckle(Effect):
     )
     magnitude = "5 um depth noise, 0.3 mm x 0.6 mm correlation"
     drives = "noise only"
-    defaults = {"sigma_mm": 0.005, "corr_u_mm": 0.3, "corr_s_mm": 0.6, "averaging_mm": 0.5}
+    defaults: ClassVar[dict[str, float | None]] = {
+        "sigma_mm": 0.005, "corr_u_mm": 0.3, "corr_s_mm": 0.6, "averaging_mm": 0.5,
+    }
     nonnegative = ("sigma_mm", "corr_u_mm", "corr_s_mm")
     positive = ("averaging_mm",)
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 
 from .effect import Effect, SimContext
@@ -19,7 +21,7 @@ class Standoff(Effect):
     )
     magnitude = "about -10 um at the top of a 55 mm sphere (r = 62.5 mm), 0 at r_ref = 90 mm"
     drives = "Z (feature R_y, i.e. stand-off / height); no effect on the lateral axes except through N_x, N_y"
-    defaults = {"linear_mm": 0.02, "quadratic_mm": 0.01, "defocus_noise": 0.5}
+    defaults: ClassVar[dict[str, float | None]] = {"linear_mm": 0.02, "quadratic_mm": 0.01, "defocus_noise": 0.5}
     nonnegative = ("defocus_noise",)
 
     def zeta(self, ctx: SimContext) -> np.ndarray:
