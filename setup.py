@@ -24,6 +24,16 @@ INTERFACE_SOURCES = ["CMakeLists.txt", "package.xml", *sorted(str(p.relative_to(
                      [*ROOT.glob("msg/*.msg"), *ROOT.glob("srv/*.srv")])]
 
 
+def package_version() -> str:
+    """The version, from package.xml (the one source: colcon and rosdep read it there)."""
+    import re
+
+    m = re.search(r"<version>\s*([^<\s]+)\s*</version>", (ROOT / "package.xml").read_text())
+    if m is None:
+        raise RuntimeError("package.xml has no <version>")
+    return m.group(1)
+
+
 def _ros_prefix() -> Path:
     """The prefix holding the ROS 2 wheels' install tree (the venv, or pip's isolated build environment)."""
     import rosidl_generator_py
@@ -121,6 +131,7 @@ class InterfaceDistribution(Distribution):
 
 
 setup(
+    version=package_version(),
     distclass=InterfaceDistribution,
     cmdclass={"build_py": BuildWithInterfaces, "install_data": InstallDataWithInterfaces},
 )

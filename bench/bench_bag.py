@@ -20,7 +20,7 @@ from std_msgs.msg import Header
 
 from xmetro_ros.bag.reader import BagReader
 from xmetro_ros.bag.writer import BagWriter
-from xmetro_ros.cloud import create_cloud_from_arrays
+from xmetro_ros.ros.cloud import create_cloud_from_arrays
 
 HERE = Path(__file__).resolve().parent
 N_MSGS = 24

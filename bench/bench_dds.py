@@ -85,7 +85,7 @@ def sender(n: int, warmup: int) -> int:
     from sensor_msgs.msg import PointCloud2
     from std_msgs.msg import Header, Int64
 
-    from xmetro_ros.cloud import create_cloud_from_arrays
+    from xmetro_ros.ros.cloud import create_cloud_from_arrays
 
     ctx = rclpy.context.Context()
     rclpy.init(context=ctx)
@@ -126,7 +126,7 @@ def sender(n: int, warmup: int) -> int:
 
 
 def _env(config: str, domain: int) -> dict[str, str]:
-    from xmetro_ros.ros_env import ros_env
+    from xmetro_ros.ros.dds_env import ros_env
 
     env = ros_env(domain)
     if config == "default":
@@ -167,7 +167,7 @@ def conversion_timings(repeats: int = 20) -> dict:
     """In-process cost of packing / reading the 180k×7 cloud (median µs) and whether the reads are views."""
     from std_msgs.msg import Header
 
-    from xmetro_ros.cloud import create_cloud_from_arrays, read_points, validate_cloud, xyz_fields
+    from xmetro_ros.ros.cloud import create_cloud_from_arrays, read_points, validate_cloud, xyz_fields
 
     rng = np.random.default_rng(0)
     arrays = {k: rng.normal(size=N_POINTS).astype(np.float32) for k in FIELDS}

@@ -71,9 +71,9 @@ def _o3d_normals_s(points_mm: np.ndarray) -> float:
 def in_process(reps: int, model_dir: str) -> dict:
     from rclpy.node import Node  # noqa: F401 - rclpy loaded like in the node
 
-    from xmetro_ros.node import XmetroCore
-    from xmetro_ros.node_params import PARAMS
-    from xmetro_ros.ros_convert import scan_to_cloud, settings_to_msg
+    from xmetro_ros.ros.convert import scan_to_cloud, settings_to_msg
+    from xmetro_ros.ros.node import XmetroCore
+    from xmetro_ros.ros.params import PARAMS
     from xmetro_ros.scan import Scan
 
     values = {p.name: p.default for p in PARAMS}
@@ -119,7 +119,7 @@ def stages(core, scan, reps: int) -> dict:
     """Median time of each stage of the judge on one scan (same process, measured separately)."""
     from xmetro_ros.features import FeatureContext, compute_features
     from xmetro_ros.preprocess import prepare_scan
-    from xmetro_ros.ros_convert import cloud_to_scan, scan_to_cloud
+    from xmetro_ros.ros.convert import cloud_to_scan, scan_to_cloud
 
     msg = scan_to_cloud(scan)
     h = core.handler
@@ -160,8 +160,8 @@ def over_dds(duration: float, model_dir: str) -> dict:
     from sensor_msgs.msg import PointCloud2
 
     from xmetro_ros.msg import ScannerSettings, ScanQuality
-    from xmetro_ros.ros_convert import ns_to_stamp, scan_to_cloud, settings_to_msg
-    from xmetro_ros.ros_util import NodeProcess, NodeSpinner, call_service, wait_for
+    from xmetro_ros.ros.convert import ns_to_stamp, scan_to_cloud, settings_to_msg
+    from xmetro_ros.ros.rclpy_util import NodeProcess, NodeSpinner, call_service, wait_for
     from xmetro_ros.srv import Explain, RecommendSettings
 
     proc = NodeProcess(params_file=str(ROOT / "config" / "xmetro.yaml"),
@@ -305,7 +305,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--skip-dds", action="store_true")
     ap.add_argument("--model", default="", help="model set directory (default: the shipped default model)")
     args = ap.parse_args(argv)
-    from xmetro_ros.ros_env import apply_ros_env
+    from xmetro_ros.ros.dds_env import apply_ros_env
 
     apply_ros_env()
     result = {"machine": {"cpus": os.cpu_count(), "python": platform.python_version(),

@@ -1,7 +1,7 @@
 """Replay throughput into a consumer → bench/results/replay.json.
 
 A synthetic bag (N scans of P points: x, y, z, intensity float32, with a ScannerSettings before each) is replayed
-by ``xmetro_ros.replay.replay_bag`` into a minimal consumer node standing in for xmetro_node: it answers each scan
+by ``xmetro_ros.apps.replay.replay_bag`` into a minimal consumer node standing in for xmetro_node: it answers each scan
 with a ScanQuality (header copied) on ``/xmetro_node/quality`` and does no processing, so the numbers are those of
 the replay machinery itself (bag reading, DDS publishing, settings acknowledgement, quality handshake):
 
@@ -30,16 +30,16 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from xmetro_ros.ros_env import apply_ros_env  # noqa: E402
+from xmetro_ros.ros.dds_env import apply_ros_env  # noqa: E402
 
 
 def make_bag(path: Path, n_scans: int, n_points: int, settings_every_scan: bool, seed: int = 0) -> int:
     from std_msgs.msg import Header
 
     from xmetro_ros.bag.writer import BagWriter
-    from xmetro_ros.cloud import create_cloud_from_arrays
     from xmetro_ros.geometry import HeadPose
-    from xmetro_ros.ros_convert import ns_to_stamp, settings_to_msg
+    from xmetro_ros.ros.cloud import create_cloud_from_arrays
+    from xmetro_ros.ros.convert import ns_to_stamp, settings_to_msg
     from xmetro_ros.scanner import ScanSettings
 
     rng = np.random.default_rng(seed)
@@ -114,8 +114,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "replay.json")
     args = ap.parse_args(argv)
     apply_ros_env()
-    from xmetro_ros.replay import replay_bag
-    from xmetro_ros.ros_util import NodeSpinner
+    from xmetro_ros.apps.replay import replay_bag
+    from xmetro_ros.ros.rclpy_util import NodeSpinner
 
     machine = {"python": platform.python_version(), "cpus": os.cpu_count(), "platform": platform.platform()}
     results = {"machine": machine,

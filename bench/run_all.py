@@ -11,7 +11,7 @@ import sys
 import time
 from pathlib import Path
 
-from xmetro_ros.ros_env import ros_env
+from xmetro_ros.ros.dds_env import ros_env
 
 HERE = Path(__file__).resolve().parent
 

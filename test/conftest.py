@@ -14,7 +14,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
 
-from xmetro_ros.ros_env import apply_ros_env  # noqa: E402
+from xmetro_ros.ros.dds_env import apply_ros_env  # noqa: E402
 
 
 def pytest_configure(config) -> None:

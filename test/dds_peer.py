@@ -1,6 +1,6 @@
 """Peer process for test_dds.py (and usable by hand): echoes our messages and serves test versions of our services.
 
-Run as ``python test/dds_peer.py [--ns NS] [--lifetime S]`` with ``xmetro_ros.ros_env.ros_env()`` as environment.
+Run as ``python test/dds_peer.py [--ns NS] [--lifetime S]`` with ``xmetro_ros.ros.dds_env.ros_env()`` as environment.
 Under namespace NS (default ``/xm_peer``):
 
 - echo: ``settings_in`` → ``settings_out`` (ScannerSettings), ``quality_in`` → ``quality_out`` (ScanQuality),
@@ -29,8 +29,8 @@ from sensor_msgs.msg import PointCloud2
 
 from xmetro_ros.geometry import HeadPose
 from xmetro_ros.msg import ScannerSettings, ScanQuality, SettingsCandidate
-from xmetro_ros.ros_convert import ns_to_stamp, settings_to_msg
-from xmetro_ros.ros_util import new_context
+from xmetro_ros.ros.convert import ns_to_stamp, settings_to_msg
+from xmetro_ros.ros.rclpy_util import new_context
 from xmetro_ros.scanner import ScanSettings
 from xmetro_ros.srv import Explain, RecommendSettings
 

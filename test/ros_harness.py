@@ -26,8 +26,8 @@ from typing import Any
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from xmetro_ros.ros_env import ros_env
-from xmetro_ros.ros_util import NodeSpinner, wait_for
+from xmetro_ros.ros.dds_env import ros_env
+from xmetro_ros.ros.rclpy_util import NodeSpinner, wait_for
 
 ROOT = Path(__file__).resolve().parents[1]
 TIMEOUT = 30.0

@@ -19,8 +19,8 @@ from std_msgs.msg import Header, String
 from xmetro_ros.bag import schema
 from xmetro_ros.bag.reader import BagFormatError, BagReader
 from xmetro_ros.bag.writer import BagWriteError, BagWriter
-from xmetro_ros.cloud import create_cloud_from_arrays
 from xmetro_ros.msg import ScannerSettings, ScanQuality
+from xmetro_ros.ros.cloud import create_cloud_from_arrays
 
 ROOT = Path(__file__).resolve().parents[1]
 BAGS = ROOT.parent / "shared" / "data" / "bags"

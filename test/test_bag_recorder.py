@@ -17,10 +17,10 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header, String
 
 from xmetro_ros.bag.reader import BagReader
-from xmetro_ros.cloud import create_cloud_from_arrays
 from xmetro_ros.msg import ScannerSettings
-from xmetro_ros.ros_env import ros_env
-from xmetro_ros.ros_util import NodeSpinner, wait_for
+from xmetro_ros.ros.cloud import create_cloud_from_arrays
+from xmetro_ros.ros.dds_env import ros_env
+from xmetro_ros.ros.rclpy_util import NodeSpinner, wait_for
 
 TIMEOUT = 30.0
 N = 15
@@ -31,7 +31,7 @@ class _Proc:
 
     def __init__(self, args: list[str], wrap: list[str] | None = None, env: dict[str, str] | None = None) -> None:
         """``args`` of `xmetro record`; ``wrap``: a command the recorder's command line is appended to."""
-        cmd = [*(wrap or []), sys.executable, "-m", "xmetro_ros.bag.cli", "record", *args]
+        cmd = [*(wrap or []), sys.executable, "-m", "xmetro_ros.apps.record", "record", *args]
         self.p = subprocess.Popen(cmd, env={**ros_env(), **(env or {})}, stdout=subprocess.PIPE,
                                   stderr=subprocess.STDOUT, text=True)
         self.lines: list[str] = []

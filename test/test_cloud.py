@@ -1,4 +1,4 @@
-"""xmetro_ros.cloud against hand-built byte layouts (struct.pack): every datatype, padding, count > 1, big-endian,
+"""xmetro_ros.ros.cloud against hand-built byte layouts (struct.pack): every datatype, padding, count > 1, big-endian,
 organized clouds, NaN handling, validation codes and round trips."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import pytest
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 
-from xmetro_ros import cloud as C
 from xmetro_ros.msg import ScanQuality
+from xmetro_ros.ros import cloud as C
 
 # (datatype, struct code, numpy dtype, sample value)
 TYPES = [

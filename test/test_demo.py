@@ -6,8 +6,8 @@ import json
 import re
 from pathlib import Path
 
-from xmetro_ros.demo import run_demo
-from xmetro_ros.predict import Tolerance, compare_outputs, read_outputs
+from xmetro_ros.apps.demo import run_demo
+from xmetro_ros.ros.node_outputs import Tolerance, compare_outputs, read_outputs
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -45,7 +45,7 @@ def test_demo_end_to_end(tmp_path):
 
 
 def test_demo_reports_missing_bag(tmp_path, capsys):
-    from xmetro_ros.cli import main
+    from xmetro_ros.apps.cli import main
 
     assert main(["demo", "--out", str(tmp_path), "--bag", str(tmp_path / "nope.mcap"), "--timeout", "5"]) == 1
     err = capsys.readouterr()

@@ -162,7 +162,7 @@ def test_explain_in_cloud_explains_the_published_predictions(trained):
     """For a PointNet set model, base + Σ SHAP (features + the set-context player) equals the prediction that
     ``predict`` gives the point inside the whole cloud (its own set of 50), not the prediction of the explained rows
     as a cloud of their own; for a point-wise model there is no context player and the same equality holds."""
-    from xmetro_ros.learn.shap_explain import SET_CONTEXT, explain, explain_in_cloud
+    from xmetro_ros.attribution import SET_CONTEXT, explain, explain_in_cloud
 
     t, _, pn_dir, dt_dir = trained
     X = np.resize(t.X, (1200, 14)) + np.random.default_rng(3).normal(0, 0.05, (1200, 14)).astype(np.float32)
@@ -199,9 +199,9 @@ def test_node_processing_path_never_imports_torch():
 
     code = (
         "import sys, numpy as np\n"
-        "import xmetro_ros.node\n"
+        "import xmetro_ros.ros.node\n"
         "from xmetro_ros.artifacts import Sphere\n"
-        "from xmetro_ros.explain_service import JudgedScan, explain_rows\n"
+        "from xmetro_ros.scan_history import JudgedScan, explain_rows\n"
         "from xmetro_ros.inference import ModelSet\n"
         "from xmetro_ros.scan_handler import HandlerParams, ScanHandler\n"
         "from xmetro_ros.scanner import ScannerModel, ScanSettings\n"

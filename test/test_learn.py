@@ -9,11 +9,11 @@ import onnxruntime as ort
 import pytest
 from test_learn_synth import NAMES, synth_table
 
+from xmetro_ros.attribution import explain, global_ranking
 from xmetro_ros.inference import ModelSet
 from xmetro_ros.learn.families import UnknownFamilyError, get_profile
 from xmetro_ros.learn.pointnet import partition_sets, sets_by_group
 from xmetro_ros.learn.protocol import cloud_split, config_keys, study_split
-from xmetro_ros.learn.shap_explain import explain, global_ranking
 from xmetro_ros.learn.train import export_model_set, fit_model
 
 MICRO = get_profile("micro")
@@ -211,7 +211,7 @@ def test_shap_truth_on_the_simulator(tmp_path):
 
 # ---------------------------------------------------------------- CLI, micro profile end to end
 def test_train_cli_micro(tmp_path):
-    from xmetro_ros.cli import main
+    from xmetro_ros.apps.cli import main
 
     out = tmp_path / "run"
     assert main(["train", "--profile", "micro", "--out", str(out), "--families", "dt,pointnet_multi"]) == 0

@@ -16,6 +16,7 @@ from xmetro_ros.loop.inputs import from_scans, load_inputs
 from xmetro_ros.loop.model import GivenModel, fit_family
 from xmetro_ros.loop.run import LoopConfig, run_loop
 from xmetro_ros.loop.trace import TraceConfig, holm
+from xmetro_ros.ros.scan_io import read_scans
 from xmetro_ros.scan import Scan
 from xmetro_ros.scanner import ScanSettings
 
@@ -194,11 +195,11 @@ def test_bad_inputs(tmp_path):
 
 
 def test_bag_input_keeps_fields_and_clouds(tmp_path):
-    from xmetro_ros.scan_io import write_scans
+    from xmetro_ros.ros.scan_io import write_scans
 
     scans = [sim_scan(k, "pass", 0.02) for k in range(4)]
     bag = write_scans(tmp_path / "scans.mcap", scans)
-    data = load_inputs([bag], None)
+    data = load_inputs([bag], None, read_bag=read_scans)
     assert len(data.groups) == 4 and {"intensity", "t", "u", "pass", "line"} <= set(data.fields)
     direct = from_scans(scans)
     assert data.n == direct.n
@@ -208,7 +209,7 @@ def test_bag_input_keeps_fields_and_clouds(tmp_path):
 def _cli(argv: list[str]) -> int:
     import argparse
 
-    from xmetro_ros.loop import cli
+    from xmetro_ros.apps import loop as cli
 
     parser = argparse.ArgumentParser()
     cli.register(parser.add_subparsers())
@@ -219,7 +220,7 @@ def _cli(argv: list[str]) -> int:
 def test_cli_end_to_end_and_errors(tmp_path, capsys):
     import json
 
-    from xmetro_ros.scan_io import write_scans
+    from xmetro_ros.ros.scan_io import write_scans
 
     bag = write_scans(tmp_path / "pass.mcap", [sim_scan(500 + k, "pass", 0.03) for k in range(6)])
     out = tmp_path / "out"

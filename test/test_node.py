@@ -25,12 +25,12 @@ from test_node_helpers import (
 )
 
 from xmetro_ros import flags as fl
-from xmetro_ros.cloud import xyz_fields
 from xmetro_ros.inference import ModelSet
 from xmetro_ros.msg import ScanQuality
-from xmetro_ros.node import XmetroNode
-from xmetro_ros.ros_convert import cloud_to_scan, ns_to_stamp
-from xmetro_ros.ros_util import NodeSpinner, call_service, wait_for
+from xmetro_ros.ros.cloud import xyz_fields
+from xmetro_ros.ros.convert import cloud_to_scan, ns_to_stamp
+from xmetro_ros.ros.node import XmetroNode
+from xmetro_ros.ros.rclpy_util import NodeSpinner, call_service, wait_for
 from xmetro_ros.scan_handler import HandlerParams, ScanHandler
 from xmetro_ros.scanner import ScannerModel
 from xmetro_ros.srv import Explain, RecommendSettings

@@ -17,8 +17,8 @@ from sensor_msgs.msg import PointCloud2, PointField
 from xmetro_ros.artifacts import Sphere
 from xmetro_ros.geometry import HeadPose
 from xmetro_ros.msg import ScannerSettings, ScanQuality
-from xmetro_ros.ros_convert import ns_to_stamp, scan_to_cloud, settings_to_msg
-from xmetro_ros.ros_util import wait_for
+from xmetro_ros.ros.convert import ns_to_stamp, scan_to_cloud, settings_to_msg
+from xmetro_ros.ros.rclpy_util import wait_for
 from xmetro_ros.scan import Scan
 from xmetro_ros.scanner import ScanSettings
 from xmetro_ros.sim import simulate_scan

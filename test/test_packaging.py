@@ -25,7 +25,11 @@ def test_wheel_carries_interfaces_libraries_config_and_model(tmp_path: Path):
                           "-w", str(tmp_path), str(ROOT)], capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-3000:]
     (wheel,) = tmp_path.glob("xmetro_ros-*.whl")
+    assert wheel.name.startswith(f"xmetro_ros-{_package_xml_version()}-"), wheel.name
     names = set(zipfile.ZipFile(wheel).namelist())
+    for layer in ("xmetro_ros/ros/node.py", "xmetro_ros/ros/core.py", "xmetro_ros/apps/cli.py", "xmetro_ros/bag/codec.py",
+                  "xmetro_ros/sim/scanner_sim.py", "xmetro_ros/learn/train.py", "xmetro_ros/loop/run.py"):
+        assert layer in names, layer
     data = next((n.split("/")[0] for n in names if n.endswith(".data/data/lib/libxmetro_ros__rosidl_generator_py.so")),
                 None)
     assert data, "the wheel has no lib/ data files: the interface libraries would be missing after install"
@@ -41,3 +45,24 @@ def test_wheel_carries_interfaces_libraries_config_and_model(tmp_path: Path):
                  f"{data}/data/share/xmetro_ros/msg/ScanQuality.msg"):
         assert must in names, must
     assert any(n.startswith("xmetro_ros/models/default/") and n.endswith(".onnx") for n in names)
+
+
+def _package_xml_version() -> str:
+    import re
+
+    m = re.search(r"<version>\s*([^<\s]+)\s*</version>", (ROOT / "package.xml").read_text())
+    assert m, "package.xml has no <version>"
+    return m.group(1)
+
+
+def test_one_version_everywhere():
+    """package.xml is the one source: the installed distribution and ``xmetro_ros.__version__`` follow it, and the
+    CHANGELOG has an entry for it."""
+    from importlib.metadata import version
+
+    import xmetro_ros
+
+    v = _package_xml_version()
+    assert xmetro_ros.__version__ == v
+    assert version("xmetro_ros") == v
+    assert f"## {v}" in (ROOT / "CHANGELOG.md").read_text()

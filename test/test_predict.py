@@ -9,16 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from xmetro_ros.predict import (
-    EXACT,
-    PredictError,
-    compare_outputs,
-    deviation_arrays,
-    predict_bag,
-    read_outputs,
-)
-from xmetro_ros.replay import replay_bag
-from xmetro_ros.ros_util import NodeSpinner
+from xmetro_ros.apps.predict import PredictError, predict_bag
+from xmetro_ros.apps.replay import replay_bag
+from xmetro_ros.ros.node_outputs import EXACT, compare_outputs, deviation_arrays, read_outputs
+from xmetro_ros.ros.rclpy_util import NodeSpinner
 
 ROOT = Path(__file__).resolve().parents[1]
 BAGS = ROOT / "bags"
@@ -33,7 +27,7 @@ def predicted(tmp_path_factory):
 
 
 def test_predict_is_identical_to_the_live_node(predicted, tmp_path):
-    from xmetro_ros.node import XmetroNode
+    from xmetro_ros.ros.node import XmetroNode
 
     res, out = predicted
     rec = tmp_path / "live.mcap"
@@ -58,7 +52,7 @@ def test_predict_outputs_are_consistent(predicted):
         assert int(np.isfinite(pts).all(axis=1).sum()) == q.points_valid
         assert int(np.count_nonzero(flags)) == q.points_flagged
         # corrected = measured + predicted deviation where there is a prediction (float32 on the wire)
-        from xmetro_ros.predict import cloud_arrays
+        from xmetro_ros.ros.node_outputs import cloud_arrays
 
         c = cloud_arrays(o.corrected)
         ok = np.isfinite(dev).all(axis=1)
@@ -108,7 +102,7 @@ def test_predict_refuses_bad_model_and_bad_params(tmp_path):
 
 
 def test_cli_predict(tmp_path, capsys):
-    from xmetro_ros.cli import main
+    from xmetro_ros.apps.cli import main
 
     out = tmp_path / "p.mcap"
     assert main(["predict", str(BAGS / "regression.mcap"), "--out", str(out), "--param", "tolerance=0.0002"]) == 0

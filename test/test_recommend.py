@@ -10,7 +10,7 @@ import pytest
 from xmetro_ros.artifacts import Sphere
 from xmetro_ros.geometry import matrix_to_quat
 from xmetro_ros.inference import ModelSet
-from xmetro_ros.recommend import coverage_mask, orientation_grid, recommend, rotation_xyz, subset_context
+from xmetro_ros.recommend import coverage_mask, orientation_grid, recommend, rotation_xyz
 from xmetro_ros.scan_handler import HandlerParams, ScanHandler
 from xmetro_ros.scanner import ScannerModel, ScanSettings
 from xmetro_ros.sim import simulate_scan
@@ -63,7 +63,7 @@ def test_recommend_region(judged):
     rec2 = recommend(model, res.context, rows, res.features, scan.pose, scanner, scan.settings, **kw)
     assert rec2.best.p95_mm == rec.best.p95_mm and np.allclose(rec2.best.rotation, rec.best.rotation)
     # coverage computed from the recomputed geometry
-    sub = subset_context(res.context, sub_rows)
+    sub = res.context.subset(sub_rows)
     cov = coverage_mask(sub.with_pose(rec.best.pose, scanner), 75.0, 75.0)
     assert cov.mean() == pytest.approx(rec.best.coverage)
     # a spent time budget stops the search after the current orientation, and says so

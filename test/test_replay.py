@@ -9,10 +9,10 @@ from pathlib import Path
 
 import pytest
 
+from xmetro_ros.apps.replay import ReplayError, replay_bag
 from xmetro_ros.bag.reader import BagFormatError, BagReader
-from xmetro_ros.predict import Tolerance, compare_outputs, read_outputs
-from xmetro_ros.replay import ReplayError, replay_bag
-from xmetro_ros.ros_util import NodeSpinner
+from xmetro_ros.ros.node_outputs import Tolerance, compare_outputs, read_outputs
+from xmetro_ros.ros.rclpy_util import NodeSpinner
 
 ROOT = Path(__file__).resolve().parents[1]
 BAGS = ROOT / "bags"
@@ -22,7 +22,7 @@ TRUCK = ROOT.parent / "shared" / "data" / "bags" / "rosbag2_pointcloud2_truck"
 @pytest.fixture(scope="module")
 def live_node():
     """xmetro_node with its default parameters and the shipped default model, spinning in this process."""
-    from xmetro_ros.node import XmetroNode
+    from xmetro_ros.ros.node import XmetroNode
 
     with NodeSpinner(lambda ctx: XmetroNode(context=ctx)) as sp:
         assert sp.node.core.model is not None, sp.node.core.degraded
@@ -114,7 +114,7 @@ def test_replay_without_node_fails_with_reason(tmp_path):
 def test_cli_replay_prints_summary(live_node, capsys):
     import argparse
 
-    from xmetro_ros.replay import register, run
+    from xmetro_ros.apps.replay import register, run
 
     p = argparse.ArgumentParser()
     register(p.add_subparsers())

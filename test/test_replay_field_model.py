@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 from test_loop import sim_scan
 
+from xmetro_ros.apps.replay import replay_bag
 from xmetro_ros.bag.reader import BagReader
 from xmetro_ros.msg import ScanQuality
-from xmetro_ros.predict import cloud_arrays
-from xmetro_ros.replay import replay_bag
-from xmetro_ros.ros_util import NodeSpinner, call_service
-from xmetro_ros.scan_io import write_scans
+from xmetro_ros.ros.node_outputs import cloud_arrays
+from xmetro_ros.ros.rclpy_util import NodeSpinner, call_service
+from xmetro_ros.ros.scan_io import write_scans
 
 ROOT = Path(__file__).resolve().parents[1]
 TRUCK = ROOT.parent / "shared" / "data" / "bags" / "rosbag2_pointcloud2_truck"
@@ -30,7 +30,7 @@ EFFECT = ("intensity", 0.03)  # ±30 µm range bias from reflectance: an effect 
 def loop_model(tmp_path_factory) -> tuple[Path, Path, list]:
     """(exported model dir, held-out bag, its scans): the cell's current model (study features, trained on scans
     without the effect) given to ``xmetro loop`` on a bag with the effect."""
-    from xmetro_ros.cli import main
+    from xmetro_ros.apps.cli import main
     from xmetro_ros.learn.train import export_model_set
     from xmetro_ros.loop.inputs import from_scans
     from xmetro_ros.loop.model import fit_family
@@ -62,7 +62,7 @@ def field_model(loop_model) -> Path:
 def node(field_model):
     from rclpy.parameter import Parameter
 
-    from xmetro_ros.node import XmetroNode
+    from xmetro_ros.ros.node import XmetroNode
 
     with NodeSpinner(lambda ctx: XmetroNode(context=ctx, parameter_overrides=[
             Parameter("model_dir", value=str(field_model))])) as sp:

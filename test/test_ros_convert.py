@@ -1,4 +1,4 @@
-"""xmetro_ros.ros_convert: Scan ⇄ PointCloud2 (mm ⇄ m, organized kept, fields kept), settings ⇄ ScannerSettings."""
+"""xmetro_ros.ros.convert: Scan ⇄ PointCloud2 (mm ⇄ m, organized kept, fields kept), settings ⇄ ScannerSettings."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from builtin_interfaces.msg import Time
 
-from xmetro_ros import cloud as C
 from xmetro_ros.geometry import HeadPose
-from xmetro_ros.ros_convert import (
+from xmetro_ros.ros import cloud as C
+from xmetro_ros.ros.convert import (
     LENGTH_FIELDS,
     cloud_to_scan,
     ns_to_stamp,

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from xmetro_ros.scan_io import read_scans
+from xmetro_ros.ros.scan_io import read_scans
 from xmetro_ros.scanner import ScannerModel
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -8,10 +8,10 @@ import json
 import numpy as np
 import pytest
 
+from xmetro_ros.apps import simulate as sim_cli
 from xmetro_ros.artifacts import Cylinder, Sphere
 from xmetro_ros.scanner import ScannerModel
 from xmetro_ros.sim import UnknownEffectError
-from xmetro_ros.sim import cli as sim_cli
 from xmetro_ros.sim.campaign import campaign_manifest, item_seed, study_campaign
 
 SC = ScannerModel.load()
@@ -79,7 +79,7 @@ def _run_cli(argv):
 
 
 def test_cli_writes_bag_and_manifest(tmp_path, capsys):
-    from xmetro_ros.scan_io import read_manifest, read_scans
+    from xmetro_ros.ros.scan_io import read_manifest, read_scans
 
     out = tmp_path / "sim"
     rc = _run_cli(["simulate", "--out", str(out), "--quick", "--seed", "2", "--artifact", "sphere:radius=6",

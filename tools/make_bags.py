@@ -82,7 +82,7 @@ def make_scans(name: str, scanner: ScannerModel) -> list:
 
 
 def write_bag(name: str, out_dir: Path, scanner: ScannerModel) -> Path:
-    from xmetro_ros.scan_io import write_scans
+    from xmetro_ros.ros.scan_io import write_scans
 
     path = out_dir / f"{name}.mcap"
     scans = make_scans(name, scanner)
@@ -104,7 +104,7 @@ def sha256(path: Path) -> str:
 
 
 def write_goldens(out_dir: Path, names: list[str], model_dir: Path | None = None) -> dict:
-    from xmetro_ros.predict import predict_bag
+    from xmetro_ros.apps.predict import predict_bag
 
     golden_dir = out_dir / "golden"
     golden_dir.mkdir(parents=True, exist_ok=True)

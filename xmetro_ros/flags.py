@@ -51,6 +51,7 @@ __all__ = [
     "domain_flags",
     "flag_counts",
     "verdict",
+    "verdict_name",
 ]
 
 FLAG_OUTLIER = 1
@@ -68,6 +69,12 @@ FLAG_NAMES = ("outlier", "grazing_incidence", "grazing_view", "over_tolerance", 
 
 VERDICT_OK, VERDICT_WARN, VERDICT_RESCAN, VERDICT_ERROR = 0, 1, 2, 3
 VERDICT_NAMES = ("OK", "WARN", "RESCAN", "ERROR")
+
+
+def verdict_name(code: int) -> str:
+    """The name of a verdict code (``ScanQuality.VERDICT_*``); ``"?"`` for a code out of range."""
+    return VERDICT_NAMES[code] if 0 <= int(code) < len(VERDICT_NAMES) else "?"
+
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,7 @@ the normals are those of the current scan.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, fields, is_dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -39,7 +39,6 @@ __all__ = [
     "orientation_grid",
     "recommend",
     "rotation_xyz",
-    "subset_context",
 ]
 
 
@@ -89,23 +88,6 @@ def orientation_grid(max_tilt: float, tilt_steps: int, max_turn: float, turn_ste
     tilts = np.linspace(-max_tilt, max_tilt, tilt_steps) if max_tilt > 0 and tilt_steps > 1 else np.zeros(1)
     turns = np.linspace(-max_turn, max_turn, turn_steps) if max_turn > 0 and turn_steps > 1 else np.zeros(1)
     return [rotation_xyz(a, b, c) for c in turns for a in tilts for b in tilts]
-
-
-def subset_context(ctx: Any, rows: np.ndarray) -> Any:
-    """A FeatureContext restricted to ``rows`` (every per-point array and field sliced)."""
-    m = len(ctx.normals)
-
-    def cut(v: Any) -> Any:
-        if isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == m:
-            return v[rows]
-        if isinstance(v, dict):
-            return {k: cut(x) for k, x in v.items()}
-        return v
-
-    if is_dataclass(ctx):
-        return replace(ctx, **{f.name: ({} if f.name.startswith("_") else cut(getattr(ctx, f.name)))
-                               for f in fields(ctx) if f.init})
-    raise TypeError("FeatureContext is expected to be a dataclass")
 
 
 def coverage_mask(ctx: Any, grazing_incidence_deg: float, grazing_view_deg: float) -> np.ndarray:
@@ -159,7 +141,7 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
         rows = rows[np.linspace(0, n_region - 1, max_points).round().astype(np.int64)]
     cands = list(candidates) if candidates else scanner.study_configurations()
     names = list(model_set.feature_names)
-    sub = subset_context(ctx, rows)
+    sub = ctx.subset(rows)
     centroid = np.asarray(sub.points, dtype=np.float64).mean(axis=0)
 
     cov_before = coverage_mask(sub, grazing_incidence_deg, grazing_view_deg)

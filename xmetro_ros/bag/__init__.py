@@ -1,9 +1,10 @@
-"""MCAP bags in rosbag2's format (``ros2 bag record -s mcap``): schemas, QoS metadata, writer, reader, recorder.
+"""MCAP bags in rosbag2's format (``ros2 bag record -s mcap``): schemas, QoS metadata, writer, reader.
 
 - :mod:`.schema`: ``ros2msg`` schema text with dependencies and RIHS01 type hashes from the installed interfaces.
 - :mod:`.qos`: ``offered_qos_profiles`` YAML as rosbag2 (metadata version 9) writes it.
 - :mod:`.writer`: :class:`~.writer.BagWriter` (bare ``.mcap`` or rosbag2 directory with split files).
 - :mod:`.reader`: :class:`~.reader.BagReader` (reads what others write; recovers truncated/corrupted files).
-- :mod:`.recorder`: live recording of ROS topics by type name (rclpy generic subscriptions).
-- :mod:`.cli`: ``xmetro record``.
+- :mod:`.codec`: rclpy message objects ⇄ CDR bytes, imported on demand (the package's only contact with ROS).
+
+Live recording over DDS is :mod:`xmetro_ros.ros.recorder`; the ``xmetro record`` command :mod:`xmetro_ros.apps.record`.
 """

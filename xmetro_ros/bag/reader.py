@@ -28,9 +28,10 @@ from typing import Any
 import yaml
 import zstandard
 from mcap.records import Attachment, Channel, Metadata, ReadDataStream, Schema
-from rclpy.serialization import deserialize_message
 
-from .schema import UnknownTypeError, message_class
+from .codec import deserialize as deserialize_cdr
+from .codec import message_class
+from .schema import UnknownTypeError
 
 __all__ = ["BagFormatError", "BagMessage", "BagReader", "BagReport", "LostData"]
 
@@ -278,14 +279,14 @@ class BagReader:
             msg = None
             if deserialize:
                 try:
-                    cls = message_class(type_name)
+                    message_class(type_name)
                 except UnknownTypeError as e:
                     if type_name not in warned:
                         warned.add(type_name)
                         log.warning("skipping messages of %s on %s: %s", type_name, ch.topic, e)
                     report.unknown_types[type_name] += 1
                     return
-                msg = deserialize_message(data, cls)
+                msg = deserialize_cdr(data, type_name)
             report.messages += 1
             report.by_topic[ch.topic] += 1
             yield BagMessage(ch.topic, type_name, log_t, pub_t, msg, data)

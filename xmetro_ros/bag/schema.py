@@ -11,7 +11,6 @@ own messages land in ``<venv>/share/xmetro_ros/msg``).
 from __future__ import annotations
 
 import functools
-import importlib
 import json
 import os
 import re
@@ -22,7 +21,6 @@ from typing import Any
 __all__ = [
     "SEPARATOR",
     "UnknownTypeError",
-    "message_class",
     "msg_dependencies",
     "msg_file",
     "normalize_type",
@@ -143,17 +141,6 @@ def type_hash(type_name: str) -> str:
         if entry.get("type_name") == f"{pkg}/{sub}/{name}":
             return str(entry.get("hash_string", ""))
     return ""
-
-
-@functools.cache
-def message_class(type_name: str) -> Any:
-    """The rclpy message class of ``type_name`` (imported as ``pkg.msg.Type``). Raises UnknownTypeError."""
-    pkg, sub, name = normalize_type(type_name)
-    try:
-        module = importlib.import_module(f"{pkg}.{sub}")
-        return getattr(module, name)
-    except (ImportError, AttributeError) as e:
-        raise UnknownTypeError(f"message type {pkg}/{sub}/{name} is not installed: {e}") from e
 
 
 def full_type_name(type_name: str) -> str:

@@ -25,8 +25,8 @@ from typing import IO, Any
 
 import yaml
 from mcap.writer import CompressionType, Writer
-from rclpy.serialization import serialize_message
 
+from .codec import serialize
 from .qos import offered_qos_yaml
 from .schema import full_type_name, schema_text, type_hash
 
@@ -289,7 +289,7 @@ class BagWriter:
         self._check_open()
         if topic not in self.topics:
             raise KeyError(f"topic {topic} was not added (call add_topic first)")
-        data = msg if isinstance(msg, (bytes, bytearray, memoryview)) else serialize_message(msg)
+        data = msg if isinstance(msg, (bytes, bytearray, memoryview)) else serialize(msg)
         log_time_ns = int(log_time_ns)
         self._maybe_split(len(data), log_time_ns)
         cur = self._cur

@@ -16,11 +16,11 @@ from typing import Any
 
 import numpy as np
 
+from ..attribution import explain, global_ranking
 from ..inference import AXES, ModelSet
 from . import report
 from .families import FAMILIES, TARGET_SCALE, check_family, get_profile
 from .protocol import Split, cloud_split, config_keys, mae, r2, study_split, summarize
-from .shap_explain import explain, global_ranking
 from .train import FittedModel, _jsonable, export_model_set, fit_model
 
 __all__ = ["METRICS_SCHEMA", "load_data", "run_study", "time_model_set"]
@@ -33,27 +33,18 @@ SPLIT_DOC = {
 }
 
 
-def load_data(profile: str = "quick", seed: int = 0, data: str | Path | None = None,
-              effects: dict | None = None, log: Callable[[str], None] = print) -> tuple[Any, dict]:
-    """Build the point table: from simulated scans in ``data`` (MCAP files written by ``xmetro simulate``), or by
-    simulating the profile's campaign with ``seed``. Returns (table, manifest)."""
+def load_data(profile: str = "quick", seed: int = 0, scans: list[Any] | None = None,
+              source_manifest: dict | None = None, effects: dict | None = None,
+              log: Callable[[str], None] = print) -> tuple[Any, dict]:
+    """Build the point table: from given ``scans`` (e.g. read from bags by ``xmetro train --data``, with their
+    ``source_manifest``), or by simulating the profile's campaign with ``seed``. Returns (table, manifest)."""
     from ..dataset import build_table
     from ..features import STUDY_FEATURES
     from ..preprocess import PreprocessConfig
 
     prof = get_profile(profile)
-    if data is not None:
-        from ..scan_io import read_manifest, read_scans
-
-        d = Path(data)
-        files = sorted(d.glob("*.mcap")) if d.is_dir() else [d]
-        if not files:
-            raise FileNotFoundError(f"no .mcap scans in {d}")
-        scans, manifest = [], {}
-        for f in files:
-            scans += read_scans(f)
-            manifest = read_manifest(f) or manifest
-        manifest = {"source": "files", "files": [f.name for f in files], "campaign": manifest}
+    if scans is not None:
+        manifest = dict(source_manifest or {"source": "scans"})
     else:
         from ..sim.campaign import campaign_manifest, study_campaign
 

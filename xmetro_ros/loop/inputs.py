@@ -10,6 +10,7 @@ scan settings are unknown, the study's geometric features only (``MEASURED_FEATU
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -169,10 +170,13 @@ def detect_kind(path: Path) -> str:
                          "profile directory with RobPoses.rob)")
 
 
-def load_inputs(paths: list[str | Path], artifact_spec: str | None, feature_names: list[str] | None = None) -> LoopData:
+def load_inputs(paths: list[str | Path], artifact_spec: str | None, feature_names: list[str] | None = None,
+                read_bag: Callable[[Path], list[Scan]] | None = None) -> LoopData:
     """All inputs of one run (they must be of one kind). ``artifact_spec`` (parse_artifact syntax) is required for
     measured files; for bags it overrides the scans' own artifact. ``feature_names``: the features of a given model
-    (bags: any registry features; measured sets: only ``MEASURED_FEATURES``, they declare no scan settings)."""
+    (bags: any registry features; measured sets: only ``MEASURED_FEATURES``, they declare no scan settings).
+    ``read_bag``: reads the scans of a bag (``xmetro_ros.ros.scan_io.read_scans``; injected so that this core
+    module needs no ROS)."""
     if not paths:
         raise LoopInputError("no input given")
     art, fit = (parse_artifact(artifact_spec) if artifact_spec else (None, False))
@@ -190,9 +194,9 @@ def load_inputs(paths: list[str | Path], artifact_spec: str | None, feature_name
     for p in paths:
         try:
             if kind == "bag":
-                from ..scan_io import read_scans
-
-                scans = read_scans(p)
+                if read_bag is None:
+                    raise LoopInputError("bag inputs need a bag reader (read_bag=xmetro_ros.ros.scan_io.read_scans)")
+                scans = read_bag(Path(p))
                 parts.append(from_scans(scans, art, fit, feature_names=feature_names,
                                         names=[f"{Path(p).stem}#{i}" for i in range(len(scans))]))
             elif kind == "nist":

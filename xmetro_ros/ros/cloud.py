@@ -106,7 +106,7 @@ class CloudFormatError(ValueError):
     @property
     def error_code(self) -> int:
         """The numeric ``ScanQuality.ERROR_*`` value of :attr:`code`."""
-        from .msg import ScanQuality
+        from ..msg import ScanQuality
 
         return int(getattr(ScanQuality, f"ERROR_{self.code}"))
 

@@ -10,9 +10,9 @@ from pathlib import Path
 
 from ..artifacts import ArtifactSpecError, parse_artifact
 from ..scanner import ScannerModel
-from .campaign import campaign_manifest, study_campaign
-from .effect import EffectConfigError, UnknownEffectError
-from .effects import EFFECTS
+from ..sim.campaign import campaign_manifest, study_campaign
+from ..sim.effect import EffectConfigError, UnknownEffectError
+from ..sim.effects import EFFECTS
 
 __all__ = ["QUICK_CONFIGS", "register", "run"]
 
@@ -45,7 +45,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from ..scan_io import write_scans  # BAG's module; imported here so `xmetro --help` stays light
+    from ..ros.scan_io import write_scans  # BAG's module; imported here so `xmetro --help` stays light
 
     try:
         scanner = ScannerModel.load(args.scanner)

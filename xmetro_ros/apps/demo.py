@@ -31,7 +31,7 @@ EXPLAIN_MAX_POINTS = 200
 
 def default_demo_bag() -> Path:
     """bags/demo.mcap of the checkout (the demo runs from a clone)."""
-    from .resources import repo_root
+    from ..resources import repo_root
 
     root = repo_root()
     if root is None:
@@ -59,15 +59,9 @@ class DemoResult:
         return not self.errors
 
 
-def _stamp(ns: int) -> Any:
-    from builtin_interfaces.msg import Time
-
-    return Time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
-
-
 def _worst_region(outputs: list[Any]) -> dict[str, Any] | None:
     """Scan with the largest p95 |error| norm and its (well measured) point with the largest predicted |deviation|."""
-    from .predict import deviation_arrays
+    from ..ros.node_outputs import deviation_arrays
 
     best = None
     for i, o in enumerate(outputs):
@@ -79,7 +73,7 @@ def _worst_region(outputs: list[Any]) -> dict[str, Any] | None:
     if best is None:
         return None
     o = outputs[best[1]]
-    from . import flags as fl
+    from .. import flags as fl
 
     pts, dev, flags = deviation_arrays(o.deviations)
     n = np.linalg.norm(dev, axis=1)
@@ -102,8 +96,9 @@ def _ask_services(node_name: str, worst: dict[str, Any], timeout: float) -> tupl
     from geometry_msgs.msg import Point
     from rclpy.node import Node
 
-    from .ros_util import NodeSpinner, call_service
-    from .srv import Explain, RecommendSettings
+    from ..ros.convert import ns_to_stamp
+    from ..ros.rclpy_util import NodeSpinner, call_service
+    from ..srv import Explain, RecommendSettings
 
     c = worst["center_m"]
     region = (f"scan #{worst['scan']}: sphere of radius {REGION_RADIUS_M * 1e3:g} mm around "
@@ -115,7 +110,7 @@ def _ask_services(node_name: str, worst: dict[str, Any], timeout: float) -> tupl
         ex_cli = sp.node.create_client(Explain, f"/{node_name}/explain")
         rc_cli = sp.node.create_client(RecommendSettings, f"/{node_name}/recommend_settings")
         req = Explain.Request()
-        req.scan_stamp = _stamp(worst["stamp_ns"])
+        req.scan_stamp = ns_to_stamp(worst["stamp_ns"])
         req.region_center = Point(x=float(c[0]), y=float(c[1]), z=float(c[2]))
         req.region_radius = REGION_RADIUS_M
         req.axes = 0
@@ -153,7 +148,7 @@ def _settings_text(s: Any) -> str:
 
 
 def _quat_deg(q: Any) -> str:
-    from .geometry import quat_to_matrix
+    from ..geometry import quat_to_matrix
 
     r = quat_to_matrix([q.x, q.y, q.z, q.w])
     angle = float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1.0, 1.0))))
@@ -190,12 +185,12 @@ def _recommend_dict(r: Any, region: str) -> dict[str, Any]:
 
 def _report_scans(bag: Path, outputs: list[Any]) -> list[Any]:
     """Report rows: quality, processed points, predicted deviations, actual errors where the artifact is known."""
-    from .predict import deviation_arrays
+    from ..ros.node_outputs import deviation_arrays
     from .report_html import ReportScan
 
     inputs: dict[int, Any] = {}
     try:
-        from .scan_io import read_scans
+        from ..ros.scan_io import read_scans
 
         inputs = {s.stamp_ns: s for s in read_scans(bag)}
     except Exception:  # bags without xmetro metadata: no known artifact, no actual errors
@@ -232,11 +227,11 @@ def run_demo(
     log: Any = print,
 ) -> DemoResult:
     """Run the demo (see the module docstring); never raises for a failing step: ``DemoResult.errors`` says."""
-    from .predict import read_outputs
+    from ..ros.dds_env import apply_ros_env
+    from ..ros.node_outputs import read_outputs
+    from ..ros.rclpy_util import NodeProcess
     from .replay import replay_bag
     from .report_html import write_report
-    from .ros_env import apply_ros_env
-    from .ros_util import NodeProcess
 
     res = DemoResult()
     t0 = time.monotonic()

@@ -18,16 +18,18 @@ from geometry_msgs.msg import Point, Pose, Quaternion
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 
+from ..geometry import HeadPose
+from ..msg import ScannerSettings
+from ..scan import Scan
+from ..scanner import ScanSettings, SettingsError
 from .cloud import create_cloud_from_arrays, dtype_from_fields, validate_cloud, xyz_fields
-from .geometry import HeadPose
-from .msg import ScannerSettings
-from .scan import Scan
-from .scanner import ScanSettings, SettingsError
 
 __all__ = [
     "LENGTH_FIELDS",
     "MM_PER_M",
     "cloud_to_scan",
+    "m_to_mm",
+    "mm_to_m",
     "ns_to_stamp",
     "pose_from_msg",
     "pose_to_msg",
@@ -48,6 +50,25 @@ LENGTH_FIELDS: frozenset[str] = frozenset(
 )
 
 _NS = 1_000_000_000
+
+
+M_PER_MM = 1e-3
+
+
+def mm_to_m(value: Any) -> Any:
+    """Millimetres (core) → metres (topics): numbers stay numbers, sequences and arrays become float64 arrays.
+
+    A multiplication by 1e-3 (not a division by 1000): the published values are bit-identical to the goldens."""
+    if isinstance(value, (int, float, np.number)):
+        return float(value) * M_PER_MM
+    return np.asarray(value, dtype=np.float64) * M_PER_MM
+
+
+def m_to_mm(value: Any) -> Any:
+    """Metres (topics) → millimetres (core): numbers stay numbers, sequences and arrays become float64 arrays."""
+    if isinstance(value, (int, float, np.number)):
+        return float(value) * MM_PER_M
+    return np.asarray(value, dtype=np.float64) * MM_PER_M
 
 
 def stamp_to_ns(stamp: Time) -> int:

@@ -29,12 +29,13 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..artifacts import ArtifactSpecError
-    from .data import LoopInputError
-    from .inputs import load_inputs
-    from .model import GivenModel
-    from .report import write_report
-    from .run import LoopConfig, run_loop
-    from .trace import TraceConfig
+    from ..loop.data import LoopInputError
+    from ..loop.inputs import load_inputs
+    from ..loop.model import GivenModel
+    from ..loop.report import write_report
+    from ..loop.run import LoopConfig, run_loop
+    from ..loop.trace import TraceConfig
+    from ..ros.scan_io import read_scans
 
     try:
         given = None
@@ -42,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
             from ..inference import ModelSet
 
             given = GivenModel(ModelSet.load(args.model))
-        data = load_inputs(args.inputs, args.artifact, given.feature_names if given else None)
+        data = load_inputs(args.inputs, args.artifact, given.feature_names if given else None, read_bag=read_scans)
         cfg = LoopConfig(
             iterations=args.iterations, max_iter=args.max_iter, correction=args.correction, seed=args.seed,
             candidates=args.candidates.split(",") if args.candidates else None,
@@ -51,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
         result = run_loop(data, cfg, given)
         path = write_report(result, args.out)
         if result.added_features:
-            from .export import export_loop_model
+            from ..loop.export import export_loop_model
 
             try:
                 export_loop_model(result, data, Path(args.out) / "model")

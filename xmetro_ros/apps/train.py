@@ -7,8 +7,9 @@ import json
 import shutil
 import tempfile
 from pathlib import Path
+from typing import Any
 
-from .families import FAMILIES, PROFILES
+from ..learn.families import FAMILIES, PROFILES
 
 __all__ = ["DEFAULT_FAMILY", "register", "run_export_default", "run_train"]
 
@@ -37,7 +38,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _families(text: str) -> tuple[str, ...]:
-    from .families import check_family
+    from ..learn.families import check_family
 
     fams = tuple(f.strip() for f in text.split(",") if f.strip())
     if not fams:
@@ -48,11 +49,12 @@ def _families(text: str) -> tuple[str, ...]:
 
 
 def run_train(args: argparse.Namespace) -> int:
-    from .study import load_data, run_study
+    from ..learn.study import load_data, run_study
 
     try:
         fams = _families(args.families)
-        table, manifest = load_data(args.profile, args.seed, args.data)
+        scans, source = _read_data(args.data) if args.data else (None, None)
+        table, manifest = load_data(args.profile, args.seed, scans=scans, source_manifest=source)
         metrics = run_study(table, manifest, args.profile, args.seed, args.out, families=fams,
                             threads=args.threads)
     except (ValueError, FileNotFoundError) as e:
@@ -72,7 +74,7 @@ def run_export_default(args: argparse.Namespace) -> int:
         if args.from_dir:
             src = Path(args.from_dir) / "models" / DEFAULT_FAMILY
         else:
-            from .study import load_data, run_study
+            from ..learn.study import load_data, run_study
 
             table, manifest = load_data(args.profile, args.seed)
             run_study(table, manifest, args.profile, args.seed, tmp, families=(DEFAULT_FAMILY,))
@@ -84,3 +86,19 @@ def run_export_default(args: argparse.Namespace) -> int:
     card = json.loads((target / "card.json").read_text())
     print(f"default model {card['id']} → {target} ({ms})")
     return 0
+
+
+def _read_data(data: str | Path) -> tuple[list[Any], dict[str, Any]]:
+    """Scans of ``--data`` (a bag written by ``xmetro simulate`` or a directory of them) and their manifest."""
+    from ..ros.scan_io import read_manifest, read_scans
+
+    d = Path(data)
+    files = sorted(d.glob("*.mcap")) if d.is_dir() else [d]
+    if not files:
+        raise FileNotFoundError(f"no .mcap scans in {d}")
+    scans: list[Any] = []
+    manifest: dict[str, Any] = {}
+    for f in files:
+        scans += read_scans(f)
+        manifest = read_manifest(f) or manifest
+    return scans, {"source": "files", "files": [f.name for f in files], "campaign": manifest}

@@ -107,7 +107,7 @@ def explain_in_cloud(
         raise ValueError("explain: the cloud has non-finite features (predict leaves them out of every set)")
     X = _check_rows(model_set, X_cloud[rows], axes)
     axes = tuple(int(a) for a in axes)
-    from ..pointsets import set_membership
+    from .pointsets import set_membership
 
     P, F, M, n = len(X), X.shape[1], len(X_cloud), model_set.set_size
     idx, set_of = set_membership(M, n, model_set.partition_seed)

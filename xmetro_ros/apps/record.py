@@ -43,9 +43,9 @@ def run(args: argparse.Namespace) -> int:
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
-    from ..ros_env import apply_ros_env
-    from .recorder import Recorder
-    from .writer import BagWriteError, BagWriter
+    from ..bag.writer import BagWriteError, BagWriter
+    from ..ros.dds_env import apply_ros_env
+    from ..ros.recorder import Recorder
 
     logging.basicConfig(level=logging.INFO, format="[xmetro record] %(levelname)s %(message)s", stream=sys.stderr)
     try:
@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m xmetro_ros.bag.cli record ...``: the same command without the other areas' CLIs."""
+    """``python -m xmetro_ros.apps.record record ...``: the same command without the other areas' CLIs."""
     parser = argparse.ArgumentParser(prog="xmetro")
     register(parser.add_subparsers(dest="command", required=True))
     args = parser.parse_args(argv)

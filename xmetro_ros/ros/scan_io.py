@@ -31,12 +31,12 @@ from typing import Any
 
 import numpy as np
 
-from .artifacts import artifact_from_dict
-from .bag.reader import BagReader
-from .bag.writer import BagWriter
-from .geometry import HeadPose
-from .scan import Scan
-from .scanner import ScannerModel, ScanSettings
+from ..artifacts import artifact_from_dict
+from ..bag.reader import BagReader
+from ..bag.writer import BagWriter
+from ..geometry import HeadPose
+from ..scan import Scan
+from ..scanner import ScannerModel, ScanSettings
 
 __all__ = [
     "MANIFEST_RECORD",
@@ -90,7 +90,7 @@ def write_scans(
         ValueError: a scan field named x/y/z/ex/ey/ez; TypeError: manifest or meta not JSON-serialisable;
         BagWriteError: I/O error.
     """
-    from .ros_convert import scan_to_cloud, settings_to_msg
+    from .convert import scan_to_cloud, settings_to_msg
 
     scans = list(scans) if not isinstance(scans, list) else scans
     stamps = _stamps(scans)
@@ -155,7 +155,7 @@ def read_manifest(path: str | Path) -> dict[str, Any] | None:
 
 
 def _scan_from_record(cloud: Any, rec: dict[str, Any], attachment: bytes | None) -> Scan:
-    from .ros_convert import cloud_to_scan
+    from .convert import cloud_to_scan
 
     shape = tuple(rec["shape"])
     settings = ScanSettings(**rec["settings"])
@@ -193,7 +193,7 @@ def iter_scans(path: str | Path, topic: str = "/scan", settings_topic: str = "/s
     Raises:
         ScanBagError: the bag has no ``topic``. FileNotFoundError / BagFormatError: see BagReader.
     """
-    from .ros_convert import cloud_to_scan, settings_from_msg, stamp_to_ns
+    from .convert import cloud_to_scan, settings_from_msg, stamp_to_ns
 
     r = BagReader(path)
     topics = r.topics()

@@ -13,7 +13,7 @@ from __future__ import annotations
 import os
 from collections.abc import Mapping
 
-from .resources import config_path
+from ..resources import config_path
 
 __all__ = ["DDS_PROFILE_NAME", "apply_ros_env", "fresh_domain_id", "ros_env"]
 

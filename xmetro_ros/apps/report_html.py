@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from ..flags import verdict_name
+
 __all__ = ["ReportScan", "deviation_map_png", "shap_bar_png", "write_report"]
 
 
@@ -43,7 +45,6 @@ class ReportScan:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
-_VERDICTS = ("OK", "WARN", "RESCAN", "ERROR")
 _COLOURS = {"OK": "#2e7d32", "WARN": "#ef6c00", "RESCAN": "#c62828", "ERROR": "#6a1b9a"}
 
 
@@ -150,7 +151,7 @@ def write_report(
     rows = []
     for s in scans:
         q = s.quality
-        vname = _VERDICTS[q["verdict"]] if 0 <= q["verdict"] < 4 else str(q["verdict"])
+        vname = verdict_name(q["verdict"])
         badge = f"<span class='v' style='background:{_COLOURS.get(vname, '#555')}'>{_e(vname)}</span>"
         flags = ", ".join(f"{k}:{v}" for k, v in q.get("flag_counts", {}).items() if v)
         rows.append([

@@ -24,7 +24,6 @@ BAG's reader reports what it could not read; every complete message is replayed 
 from __future__ import annotations
 
 import argparse
-import struct
 import sys
 import threading
 import time
@@ -33,29 +32,20 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-__all__ = [
-    "POINTCLOUD2",
-    "QUALITY_TYPE",
-    "SETTINGS_TYPE",
-    "VERDICT_NAMES",
-    "ReplayError",
-    "ReplayResult",
-    "ScanOutcome",
-    "cdr_header",
-    "classify_topics",
-    "describe_loss",
-    "register",
-    "replay_bag",
-    "run",
-]
+from ..flags import verdict_name
+from ..ros.convert import stamp_to_ns
+from ..ros.node_outputs import (
+    DIAGNOSTICS_TYPE,
+    POINTCLOUD2,
+    QUALITY_TYPE,
+    SETTINGS_TYPE,
+    TopicError,
+    cdr_header,
+    classify_topics,
+    describe_loss,
+)
 
-POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
-SETTINGS_TYPE = "xmetro_ros/msg/ScannerSettings"
-QUALITY_TYPE = "xmetro_ros/msg/ScanQuality"
-DIAGNOSTICS_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
-VERDICT_NAMES = {0: "OK", 1: "WARN", 2: "RESCAN", 3: "ERROR"}
-OUTPUT_SUFFIXES = ("/deviations", "/corrected", "/quality")
-
+__all__ = ["ReplayError", "ReplayResult", "ScanOutcome", "register", "replay_bag", "run"]
 
 class ReplayError(RuntimeError):
     """The bag cannot be replayed (no scans, node not found, node not answering)."""
@@ -75,7 +65,7 @@ class ScanOutcome:
 
     @property
     def verdict(self) -> str:
-        return "NO ANSWER" if self.quality is None else VERDICT_NAMES.get(int(self.quality.verdict), "?")
+        return "NO ANSWER" if self.quality is None else verdict_name(int(self.quality.verdict))
 
     def line(self) -> str:
         """One summary line: index, topic, stamp, points, verdict, predicted mean |error| (mm), message."""
@@ -140,67 +130,11 @@ class ReplayResult:
         return "\n".join(lines)
 
 
-def describe_loss(report: Any) -> list[str]:
-    """Lines for what BAG's reader could not deliver (``BagReport``: lost records, unfinished files, unknown types)."""
-    if report is None or getattr(report, "ok", True):
-        return []
-    lines = [f"{n} messages of type {t} not installed here were skipped"
-             for t, n in sorted(report.unknown_types.items())]
-    lines += [f"{Path(f).name}: not closed by its writer (truncated?)" for f in report.unfinished_files]
-    if report.recovered_from_partial_chunk:
-        lines.append(f"{report.recovered_from_partial_chunk} messages recovered from a truncated chunk")
-    lines += [lost.describe() for lost in report.lost]
-    return lines
-
-
-def classify_topics(topics: dict[str, str], wanted: list[str] | None = None) -> tuple[list[str], list[str]]:
-    """(scan input topics, settings topics) of a bag with ``topics`` {name: type}.
-
-    Raises:
-        ReplayError: a wanted topic is not in the bag or is not a PointCloud2.
-    """
-    settings = sorted(t for t, ty in topics.items() if ty == SETTINGS_TYPE)
-    if wanted:
-        norm = {t.lstrip("/"): t for t in topics}
-        scans = []
-        for w in wanted:
-            t = norm.get(w.lstrip("/"))
-            if t is None:
-                raise ReplayError(f"topic {w!r} is not in the bag (topics: {', '.join(sorted(topics)) or 'none'})")
-            if topics[t] != POINTCLOUD2:
-                raise ReplayError(f"topic {t!r} has type {topics[t]}, not {POINTCLOUD2}")
-            scans.append(t)
-        return scans, settings
-    scans = sorted(t for t, ty in topics.items() if ty == POINTCLOUD2 and not t.endswith(OUTPUT_SUFFIXES))
-    return scans, settings
-
-
 def _header_of(msg: Any) -> tuple[int, str]:
     h = getattr(msg, "header", None)
     if h is None:
         return 0, ""
-    return int(h.stamp.sec) * 1_000_000_000 + int(h.stamp.nanosec), str(h.frame_id)
-
-
-def cdr_header(raw: bytes, cloud: bool = False) -> tuple[int, str, int]:
-    """(stamp ns, frame_id, width × height if ``cloud``) of a CDR message that starts with a std_msgs/Header.
-
-    Read from the bytes (no deserialisation of the point data). Raises ValueError on a truncated/odd buffer.
-    """
-    if len(raw) < 16 or raw[0] != 0 or raw[1] not in (0, 1):
-        raise ValueError("not a CDR buffer")
-    e = "<" if raw[1] == 1 else ">"
-    sec, nsec, n = struct.unpack_from(e + "iII", raw, 4)
-    if 16 + n > len(raw):
-        raise ValueError("CDR header string runs past the buffer")
-    frame = bytes(raw[16:16 + n]).rstrip(b"\0").decode("utf-8", "replace")
-    points = 0
-    if cloud:
-        off = 16 + n
-        off += (-(off - 4)) % 4  # align to 4 relative to the payload start
-        height, width = struct.unpack_from(e + "II", raw, off)
-        points = int(height) * int(width)
-    return int(sec) * 1_000_000_000 + int(nsec), frame, points
+    return stamp_to_ns(h.stamp), str(h.frame_id)
 
 
 def _qos_like(infos: list[Any], depth: int) -> Any:
@@ -220,7 +154,7 @@ class _Replayer:
                  log: Callable[[str], None]) -> None:
         from rclpy.node import Node
 
-        from .ros_util import NodeSpinner
+        from ..ros.rclpy_util import NodeSpinner
 
         self.node_name = node_name.strip("/")
         self.scan_topic = scan_topic
@@ -249,8 +183,8 @@ class _Replayer:
         from rclpy.serialization import deserialize_message
         from sensor_msgs.msg import PointCloud2
 
-        from .msg import ScannerSettings, ScanQuality
-        from .ros_util import wait_for
+        from ..msg import ScannerSettings, ScanQuality
+        from ..ros.rclpy_util import wait_for
 
         node = self.node
         deadline = time.monotonic() + timeout
@@ -264,7 +198,7 @@ class _Replayer:
                               f"found within {timeout:g} s (is xmetro_node running, with the same ROS_DOMAIN_ID?)")
         # Outputs: QoS like the node's publishers; everything recorded as serialized bytes.
         if self.record is not None:
-            from .bag.writer import BagWriter
+            from ..bag.writer import BagWriter
 
             self.writer = BagWriter(self.record, compression="zstd")
             self.writer.add_topic(self.scan_topic, POINTCLOUD2)
@@ -389,7 +323,7 @@ def replay_bag(
         ReplayError: no scans in the bag, node not found, or bad arguments.
         FileNotFoundError: the bag does not exist.
     """
-    from .bag.reader import BagReader
+    from ..bag.reader import BagReader
 
     if not fast and not rate > 0:
         raise ReplayError(f"--rate must be > 0, got {rate}")
@@ -400,7 +334,10 @@ def replay_bag(
         raise FileExistsError(f"record output {record} already exists")
     reader = BagReader(bag)
     bag_topics = dict(reader.topics())
-    scan_topics, settings_topics = classify_topics(bag_topics, topics)
+    try:
+        scan_topics, settings_topics = classify_topics(bag_topics, topics)
+    except TopicError as e:
+        raise ReplayError(str(e)) from e
     if not scan_topics:
         raise ReplayError(f"bag {bag} has no {POINTCLOUD2} input topic to replay (topics: "
                           + (", ".join(f"{t} [{ty}]" for t, ty in sorted(bag_topics.items())) or "none") + ")")

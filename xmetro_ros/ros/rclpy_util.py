@@ -16,7 +16,7 @@ import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 
-from .ros_env import apply_ros_env
+from .dds_env import apply_ros_env
 
 __all__ = ["NodeProcess", "NodeSpinner", "ServiceTimeoutError", "call_service", "new_context", "wait_for"]
 
@@ -115,7 +115,7 @@ def call_service(client: Any, request: Any, timeout: float = 60.0, attempt_timeo
 
 
 class NodeProcess:
-    """Run ``xmetro_node`` as a child process (``python -m xmetro_ros.node``) with the localhost ROS environment.
+    """Run ``xmetro_node`` as a child process (``python -m xmetro_ros.ros.node``) with the localhost ROS environment.
 
     ``start()`` launches it and waits for its ready log line (``node.READY_MESSAGE``); ``stop()`` sends SIGINT and
     waits (SIGKILL after ``stop_timeout``). Its combined stdout/stderr lines are kept in ``lines``. Usable as a
@@ -146,7 +146,7 @@ class NodeProcess:
     def command(self) -> list[str]:
         import sys
 
-        cmd = [sys.executable, "-m", "xmetro_ros.node", "--ros-args"]
+        cmd = [sys.executable, "-m", "xmetro_ros.ros.node", "--ros-args"]
         if self.params_file:
             cmd += ["--params-file", str(self.params_file)]
         for k, v in self.params.items():
@@ -161,8 +161,8 @@ class NodeProcess:
         import os
         import subprocess
 
+        from .dds_env import ros_env
         from .node import READY_MESSAGE
-        from .ros_env import ros_env
 
         env = ros_env(self.domain_id)
         env.update(self.extra_env)

@@ -19,8 +19,9 @@ from typing import Any
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from .schema import UnknownTypeError, message_class
-from .writer import BagWriter
+from ..bag.codec import message_class
+from ..bag.schema import UnknownTypeError
+from ..bag.writer import BagWriter
 
 __all__ = ["Recorder", "adapted_qos"]
 

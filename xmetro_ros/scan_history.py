@@ -157,7 +157,7 @@ def explain_rows(model_set: Any, judged: JudgedScan, rows: np.ndarray, axes: tup
     value is how many distinct other points that set holds) when the model has a set member
     (``learn.shap_explain.explain_in_cloud``).
     """
-    from .learn.shap_explain import SET_CONTEXT, explain_in_cloud
+    from .attribution import SET_CONTEXT, explain_in_cloud
 
     feats = judged.features
     finite = np.isfinite(feats).all(axis=1)

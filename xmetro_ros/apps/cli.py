@@ -1,0 +1,67 @@
+"""`xmetro`: command-line entry point. Each area registers its own subcommands (``register(subparsers)``).
+
+Only the area of the command being run is imported (``xmetro predict`` never loads the live DDS tools, and one
+broken area does not hide the others); ``xmetro --help`` imports them all to list their options.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+__all__ = ["AREAS", "build_parser", "main"]
+
+# command → (module that registers it, one-line help shown without importing the module)
+AREAS: dict[str, tuple[str, str]] = {
+    "simulate": ("xmetro_ros.apps.simulate", "simulate the study's campaign with the virtual scanner"),
+    "train": ("xmetro_ros.apps.train", "run the study's learning pipeline (metrics, tables, SHAP, ONNX)"),
+    "export-default": ("xmetro_ros.apps.train", "train or copy a model set and install it as the default"),
+    "record": ("xmetro_ros.apps.record", "record ROS 2 topics to MCAP (rosbag2 format)"),
+    "replay": ("xmetro_ros.apps.replay", "replay a bag's scans and settings into a running xmetro_node"),
+    "predict": ("xmetro_ros.apps.predict", "judge a bag's scans offline, as the live node would"),
+    "demo": ("xmetro_ros.apps.demo", "start a node, replay bags/demo.mcap, write out/demo/report.html"),
+    "loop": ("xmetro_ros.apps.loop", "trace the residual of the model to an undeclared effect and add it"),
+}
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``xmetro`` parser. With ``command``, only that command's area is imported and registered in full;
+    the other commands are listed by name and help."""
+    parser = argparse.ArgumentParser(prog="xmetro", description=__doc__)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    modules = dict.fromkeys(m for m, _ in AREAS.values())  # ordered, unique
+    wanted = {AREAS[command][0]} if command in AREAS else set(modules)
+    registered: set[str] = set()
+    for module in modules:
+        if module not in wanted:
+            continue
+        try:
+            area = importlib.import_module(module)
+        except ModuleNotFoundError as e:
+            if e.name != module:  # a real import error inside an area must surface
+                raise
+            continue  # an area not built in this install: listed below as not available
+        area.register(sub)
+        registered.update(sub.choices)
+    for name, (module, help_text) in AREAS.items():
+        if name not in registered:
+            available = module in wanted
+            sub.add_parser(name, help=help_text if not available else f"(not available: {module} is not installed)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run ``xmetro`` with ``argv`` (default: the process arguments); returns the exit code."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    command = next((a for a in argv if not a.startswith("-")), None)
+    parser = build_parser(command)
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,227 @@
+"""`xmetro predict BAG --out OUT.mcap`: the live node's processing, offline, in batch (no DDS); and the node's
+outputs read back from bags and compared field by field.
+
+Predict runs :class:`xmetro_ros.ros.node.XmetroCore` — the very object the live node runs in its worker — over the
+bag's messages in order: each ScannerSettings message goes to its settings history, each PointCloud2 of the input
+topics is judged (``XmetroCore.judge``), and the resulting ``~/quality``, ``~/deviations`` and ``~/corrected``
+messages are written under the node's topic names (``/xmetro_node/...``), next to the inputs (``/scan``,
+``/scanner_settings``), exactly as ``xmetro replay --record`` records a live run. So both can be read with
+:func:`read_outputs` and compared with :func:`compare_outputs`: they are identical field by field except
+``ScanQuality.processing_latency`` (wall-clock time; offline = the computing time). Node parameters: the defaults
+of :mod:`xmetro_ros.ros.params`, ``--model`` and ``--param name=value`` overrides.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..ros.node_outputs import (
+    POINTCLOUD2,
+    QUALITY_TYPE,
+    SETTINGS_TYPE,
+    OutputSet,
+    TopicError,
+    classify_topics,
+    describe_loss,
+)
+
+__all__ = ["PredictError", "PredictResult", "node_values", "predict_bag", "register", "run"]
+
+
+class PredictError(RuntimeError):
+    """The bag cannot be processed offline (no scans, model unavailable, bad parameter)."""
+
+
+@dataclass
+class PredictResult:
+    """What ``predict_bag`` did."""
+
+    bag: str
+    out: Path
+    model_id: str
+    outputs: list[OutputSet] = field(default_factory=list)
+    inputs: list[str] = field(default_factory=list)  # input topic of each scan
+    settings_seen: int = 0
+    notes: list[str] = field(default_factory=list)
+    losses: list[str] = field(default_factory=list)
+    wall_s: float = 0.0
+
+    def summary(self) -> str:
+        from ..flags import verdict_name
+
+        n_def = sum(1 for o in self.outputs if o.quality.settings_defaulted)
+        lines = [f"predict {self.bag} → {self.out}: {len(self.outputs)} scans, {self.settings_seen} settings, "
+                 f"model {self.model_id or '(none)'}, {n_def} with defaulted settings, {self.wall_s:.2f} s"]
+        for i, (o, topic) in enumerate(zip(self.outputs, self.inputs, strict=True)):
+            q = o.quality
+            err = f" error_code={int(q.error_code)}" if int(q.error_code) else ""
+            mae = ", ".join(f"{v * 1e3:.4f}" for v in q.mean_abs_error)
+            lines.append(f"#{i:<3d} {topic:<20s} stamp={o.stamp_ns / 1e9:.3f}s points={q.points_received} -> "
+                         f"{verdict_name(int(q.verdict))}{err} valid={q.points_valid} "
+                         f"usable={q.usable_fraction:.3f} mean|e|(x,y,z)=({mae}) mm"
+                         + (" settings DEFAULTED" if q.settings_defaulted else "")
+                         + (f" — {q.message}" if q.message else ""))
+        lines += [f"note: {n}" for n in self.notes]
+        lines += [f"LOSS: {x}" for x in self.losses]
+        return "\n".join(lines)
+
+
+def node_values(model_dir: str | Path | None = None, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The node's parameter values: defaults of :data:`node_params.PARAMS`, then ``overrides``, then ``model_dir``.
+
+    Raises:
+        PredictError: unknown parameter, wrong type or a value the node would refuse.
+    """
+    from ..ros import params as node_params
+
+    specs = {p.name: p for p in node_params.PARAMS}
+    values = {p.name: p.default for p in node_params.PARAMS}
+    for k, v in (overrides or {}).items():
+        if k not in specs:
+            raise PredictError(f"unknown node parameter {k!r}")
+        d = specs[k].default
+        try:
+            if isinstance(d, bool):
+                v = v if isinstance(v, bool) else str(v).lower() in ("1", "true", "yes")
+            elif isinstance(d, int):
+                v = int(v)
+            elif isinstance(d, float):
+                v = float(v)
+            else:
+                v = str(v)
+        except ValueError as e:
+            raise PredictError(f"parameter {k}: {e}") from e
+        values[k] = v
+    if model_dir is not None:
+        values["model_dir"] = str(Path(model_dir).resolve())
+    reason = node_params.validate(values, values)
+    if reason:
+        raise PredictError(f"invalid parameter: {reason}")
+    return values
+
+
+def predict_bag(
+    bag: str | Path,
+    out: str | Path,
+    *,
+    model_dir: str | Path | None = None,
+    params: dict[str, Any] | None = None,
+    topics: list[str] | None = None,
+    node_name: str = "xmetro_node",
+    log: Any = None,
+    include: tuple[str, ...] = ("inputs", "deviations", "corrected"),
+) -> PredictResult:
+    """Judge every scan of ``bag`` as the live node would and write the outputs to ``out`` (.mcap).
+
+    Args:
+        bag: .mcap file or rosbag2 directory.
+        out: output .mcap (must not exist).
+        model_dir: model set directory (default: the shipped default model).
+        params: node parameter overrides (SI units, as in config/xmetro.yaml).
+        topics: PointCloud2 topics to judge (default: all but node outputs, as ``xmetro replay``).
+        node_name: the node name used for the output topics.
+        log: callable for one line per scan.
+        include: what to write besides ``~/quality``: ``inputs`` (/scan, /scanner_settings), ``deviations``,
+            ``corrected`` (the goldens keep only quality and deviations).
+
+    Raises:
+        PredictError: no model (the reason), no input scans. FileNotFoundError / BagFormatError: unreadable bag.
+        FileExistsError: ``out`` exists.
+    """
+    from ..bag.reader import BagReader
+    from ..bag.writer import BagWriter
+    from ..ros.core import XmetroCore
+
+    t_start = time.monotonic()
+    if Path(out).exists():
+        raise FileExistsError(f"output {out} already exists")
+    values = node_values(model_dir, params)
+    bag = Path(bag)
+    reader = BagReader(bag)
+    bag_topics = reader.topics()
+    try:
+        scan_topics, settings_topics = classify_topics(bag_topics, topics)
+    except TopicError as e:
+        raise PredictError(str(e)) from e
+    if not scan_topics:
+        raise PredictError(f"bag {bag} has no {POINTCLOUD2} input topic (topics: "
+                           + (", ".join(f"{t} [{ty}]" for t, ty in sorted(bag_topics.items())) or "none") + ")")
+    core = XmetroCore(values, logger=None)
+    if core.model is None:
+        raise PredictError(f"no usable model: {core.degraded}")
+    out = Path(out)
+    res = PredictResult(bag=str(bag), out=out, model_id=core.model_id)
+    if not settings_topics:
+        res.notes.append(f"the bag has no {SETTINGS_TYPE} messages: every scan used the configured default settings "
+                         f"(default_* parameters, head {core.scanner.standoff_mm:g} mm above the frame origin, "
+                         "looking down); ScanQuality.settings_defaulted = true")
+    ns = "/" + node_name.strip("/")
+    out_topics = {"quality": f"{ns}/quality", "deviations": f"{ns}/deviations", "corrected": f"{ns}/corrected"}
+    with BagWriter(out, compression="zstd") as w:
+        w.add_topic("/scan", POINTCLOUD2)
+        w.add_topic("/scanner_settings", SETTINGS_TYPE)
+        w.add_topic(out_topics["quality"], QUALITY_TYPE)
+        w.add_topic(out_topics["deviations"], POINTCLOUD2)
+        w.add_topic(out_topics["corrected"], POINTCLOUD2)
+        for m in reader.messages(topics=set(scan_topics) | set(settings_topics)):
+            if m.topic in settings_topics:
+                err = core.add_settings(m.msg)
+                res.settings_seen += 1
+                if "inputs" in include:
+                    w.write("/scanner_settings", m.raw, m.log_time_ns)
+                if err:
+                    res.notes.append(f"invalid ScannerSettings at log time {m.log_time_ns} ns: {err}")
+                continue
+            if "inputs" in include:
+                w.write("/scan", m.raw, m.log_time_ns)
+            o = core.judge(m.msg)
+            for kind in ("deviations", "corrected"):
+                if kind in include and getattr(o, kind) is not None:
+                    w.write(out_topics[kind], getattr(o, kind), m.log_time_ns)
+            w.write(out_topics["quality"], o.quality, m.log_time_ns)
+            res.outputs.append(OutputSet(o.quality, o.deviations, o.corrected))
+            res.inputs.append(m.topic)
+            if log is not None:
+                log(f"#{len(res.outputs) - 1} {m.topic}: {o.log}")
+    res.losses = describe_loss(reader.report)
+    res.wall_s = time.monotonic() - t_start
+    return res
+
+
+def _parse_params(items: list[str] | None) -> dict[str, str]:
+    out = {}
+    for it in items or []:
+        k, sep, v = it.partition("=")
+        if not sep or not k:
+            raise PredictError(f"--param expects name=value, got {it!r}")
+        out[k.strip()] = v.strip()
+    return out
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("predict", help="judge a bag's scans offline, as the live node would",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("bag", help="a .mcap file or a rosbag2 directory")
+    p.add_argument("--out", required=True, metavar="OUT.mcap", help="output MCAP (must not exist)")
+    p.add_argument("--model", default=None, metavar="DIR", help="model directory (default: the shipped model)")
+    p.add_argument("--topic", action="append", help="PointCloud2 topic to judge (repeatable; default: all inputs)")
+    p.add_argument("--param", action="append", metavar="NAME=VALUE", help="node parameter override (repeatable)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..bag.reader import BagFormatError
+
+    try:
+        res = predict_bag(args.bag, args.out, model_dir=args.model, params=_parse_params(args.param),
+                          topics=args.topic)
+    except (PredictError, BagFormatError, OSError) as e:
+        print(f"xmetro predict: error: {e}", file=sys.stderr)
+        return 1
+    print(res.summary())
+    return 0

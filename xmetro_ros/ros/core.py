@@ -1,0 +1,278 @@
+"""``XmetroCore``: everything the node computes, without DDS — the settings history, judging clouds into the
+node's output messages, the history of judged scans and the two services' answers.
+
+Shared by the live node (:mod:`xmetro_ros.ros.node`, in its worker thread) and ``xmetro predict`` (offline), so
+both produce the very same messages. Takes and returns ROS message objects (metres); the computation itself is
+the ROS-free :class:`xmetro_ros.scan_handler.ScanHandler` (millimetres). Never creates a DDS participant.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+from sensor_msgs.msg import PointCloud2
+
+from ..geometry import HeadPose
+from ..msg import ScannerSettings, ScanQuality
+from ..scan_handler import HandlerParams, ScanError, ScanHandler
+from ..scan_history import JudgedScan, ScanHistory, ServiceError, axes_from_mask, explain_rows, select_rows
+from ..scanner import ScannerModel, ScanSettings, SettingsError
+from ..srv import Explain, RecommendSettings
+from .cloud import CloudFormatError, validate_cloud, xyz_fields
+from .convert import cloud_to_scan, m_to_mm, settings_from_msg, settings_to_msg, stamp_to_ns
+from .messages import (
+    error_code_value,
+    explain_response,
+    failed_response,
+    fill_quality,
+    new_quality,
+    recommend_response,
+)
+from .output_clouds import corrected_cloud, deviations_cloud
+
+__all__ = ["CoreOutput", "SettingsEntry", "XmetroCore"]
+
+
+@dataclass
+class SettingsEntry:
+    stamp_ns: int
+    msg: ScannerSettings
+    settings: ScanSettings | None
+    pose: HeadPose | None
+    scanner_id: str
+    frame_id: str
+    error: str
+
+
+@dataclass
+class CoreOutput:
+    """Messages for one scan; ``deviations`` / ``corrected`` are None when the scan is in ERROR."""
+
+    quality: ScanQuality
+    deviations: PointCloud2 | None
+    corrected: PointCloud2 | None
+    log: str
+
+
+class XmetroCore:
+    """Everything the node computes, without DDS: settings history, judging clouds, judged scans, services.
+
+    Args:
+        values: parameter values (see :mod:`xmetro_ros.ros.params`), SI units.
+        logger: object with info / warning / error (e.g. an rclpy logger); None → silent.
+    """
+
+    def __init__(self, values: dict[str, Any], logger: Any = None) -> None:
+        self.values = dict(values)
+        self.log = logger
+        self.scanner = ScannerModel.load(values["scanner_config"] or None)
+        self.model: Any = None
+        self.degraded = ""
+        try:
+            from ..features import REGISTRY
+            from ..inference import ModelSet
+
+            model = ModelSet.load(values["model_dir"] or None, threads=int(values["inference_threads"]))
+            model.check_features(REGISTRY)
+            self.model = model
+        except Exception as e:
+            self.degraded = f"model unavailable: {e}"
+        self.handler = ScanHandler(self.model, self.scanner, HandlerParams.from_node_values(self.values))
+        self._settings: deque[SettingsEntry] = deque(maxlen=int(values["settings_history"]))
+        self._settings_lock = threading.Lock()
+        self.history = ScanHistory(int(values["scan_history"]))
+
+    @property
+    def model_id(self) -> str:
+        return self.model.id if self.model is not None else ""
+
+    def update_values(self, changes: dict[str, Any]) -> None:
+        """Apply live parameter changes (already validated)."""
+        self.values.update(changes)
+        self.handler.params = HandlerParams.from_node_values(self.values)
+
+    # ------------------------------------------------------------------ settings
+    def add_settings(self, msg: ScannerSettings) -> str:
+        """Store a ScannerSettings message; return "" or the reason it is invalid (kept: scans stamped after it
+        get ERROR INVALID_SETTINGS)."""
+        err = ""
+        settings = pose = None
+        scanner_id = msg.scanner_id
+        try:
+            settings, pose, scanner_id, _frame, _stamp = settings_from_msg(msg)
+            settings.validate(self.scanner.settings_range)
+            if scanner_id and scanner_id != self.scanner.id:
+                raise SettingsError(f"scanner_id {scanner_id!r} is not the node's scanner {self.scanner.id!r}")
+        except (SettingsError, ValueError) as e:
+            err = str(e)
+        entry = SettingsEntry(stamp_to_ns(msg.header.stamp), msg, settings, pose, scanner_id, msg.header.frame_id, err)
+        with self._settings_lock:
+            self._settings.append(entry)
+            ordered = sorted(self._settings, key=lambda e: e.stamp_ns)
+            self._settings.clear()
+            self._settings.extend(ordered)
+        return err
+
+    def settings_for(self, stamp_ns: int) -> SettingsEntry | None:
+        """The latest settings stamped at or before ``stamp_ns``, or None."""
+        with self._settings_lock:
+            best = None
+            for e in self._settings:
+                if e.stamp_ns <= stamp_ns:
+                    best = e
+            return best
+
+    @property
+    def settings_count(self) -> int:
+        return len(self._settings)
+
+    def default_entry(self, frame_id: str, stamp_ns: int) -> SettingsEntry:
+        v = self.values
+        s = ScanSettings.from_si(v["default_lateral_density"], v["default_direction_density"],
+                                 v["default_exposure_time"])
+        pose = HeadPose.looking_down(self.scanner.standoff_mm)
+        msg = settings_to_msg(s, pose, frame_id, stamp_ns, self.scanner.id)
+        return SettingsEntry(stamp_ns, msg, s, pose, self.scanner.id, frame_id, "")
+
+    # ------------------------------------------------------------------ judging
+    def _error(self, q: ScanQuality, code: str, message: str, n: int, t0: float) -> CoreOutput:
+        q.verdict = ScanQuality.VERDICT_ERROR
+        q.error_code = error_code_value(code)
+        q.message = message
+        q.points_received = n
+        q.processing_latency = time.monotonic() - t0
+        return CoreOutput(q, None, None, f"scan rejected ({code}): {message}")
+
+    def judge(self, msg: PointCloud2, t0: float | None = None) -> CoreOutput:
+        """Judge one cloud; ``t0`` = monotonic receipt time (for processing_latency). Never raises for bad input."""
+        t0 = time.monotonic() if t0 is None else t0
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        n = int(msg.width) * int(msg.height)
+        entry = self.settings_for(stamp_ns)
+        defaulted = entry is None
+        if defaulted:
+            entry = self.default_entry(msg.header.frame_id, stamp_ns)
+        q = new_quality(msg.header, self.model_id, entry.msg, defaulted)
+        try:
+            if self.model is None:
+                return self._error(q, "MODEL_UNAVAILABLE", self.degraded, n, t0)
+            validate_cloud(msg, require_valid_points=True)
+            if entry.error:
+                return self._error(q, "INVALID_SETTINGS", f"settings stamped {entry.stamp_ns} ns are invalid: "
+                                                          f"{entry.error}", n, t0)
+            if self.values["check_frame"] and not defaulted and entry.frame_id != msg.header.frame_id:
+                return self._error(q, "FRAME_MISMATCH", f"scan frame {msg.header.frame_id!r} differs from the "
+                                                        f"settings' frame {entry.frame_id!r}", n, t0)
+            scan = cloud_to_scan(msg, entry.settings, entry.pose, self.scanner.id)
+            res = self.handler.process(scan, settings_defaulted=defaulted)
+        except CloudFormatError as e:
+            return self._error(q, e.code, str(e), n, t0)
+        except ScanError as e:
+            return self._error(q, e.code, str(e), n, t0)
+        except Exception as e:
+            return self._error(q, "INTERNAL", f"{type(e).__name__}: {e}", n, t0)
+
+        try:
+            return self._outputs(msg, q, res, entry, stamp_ns, t0)
+        except Exception as e:
+            return self._error(q, "INTERNAL", f"encoding the outputs failed: {type(e).__name__}: {e}", n, t0)
+
+    def _outputs(self, msg: PointCloud2, q: ScanQuality, res: Any, entry: SettingsEntry, stamp_ns: int,
+                 t0: float) -> CoreOutput:
+        fill_quality(q, res.quality)
+        keep = res.kept
+        out_h, out_w = (1, len(keep)) if keep is not None else (int(msg.height), int(msg.width))
+        # x, y, z exactly as received (float32 metres), one point per (kept) input point.
+        xyz, _ = xyz_fields(msg)
+        points_m = np.asarray(xyz if keep is None else xyz[keep], dtype=np.float32)
+        dev_cloud = deviations_cloud(msg.header, points_m, res.deviations, res.flags, out_h, out_w)
+        corrected = corrected_cloud(msg, res.deviations, keep, out_h, out_w)
+        self.history.add(JudgedScan(
+            stamp_ns=stamp_ns, frame_id=msg.header.frame_id, n_points=out_h * out_w,
+            index=np.asarray(res.prepared.index), points=np.asarray(res.prepared.points), features=res.features,
+            predictions=res.predictions, context=_lean_context(res.context), settings=entry.settings, pose=entry.pose,
+            scanner_id=self.scanner.id, model_id=self.model_id))
+        q.processing_latency = time.monotonic() - t0
+        qd = res.quality
+        return CoreOutput(q, dev_cloud, corrected, f"scan {stamp_ns}: {qd['verdict_name']} ({qd['message']})")
+
+    # ------------------------------------------------------------------ services
+    def explain(self, req: Explain.Request) -> Explain.Response:
+        """``~/explain``: SHAP values of points of a judged scan (never raises: failures → success false)."""
+        try:
+            if self.model is None:
+                raise ServiceError(self.degraded)
+            judged = self.history.get(stamp_to_ns(req.scan_stamp))
+            axes = axes_from_mask(int(req.axes))
+            cap_node = int(self.values["explain_max_points"])
+            cap = min(int(req.max_points), cap_node) if req.max_points else cap_node
+            c = req.region_center
+            rows, note = select_rows(judged, np.asarray(req.indices, dtype=np.int64), m_to_mm([c.x, c.y, c.z]),
+                                     m_to_mm(float(req.region_radius)), cap)
+            r = explain_rows(self.model, judged, rows, axes)
+        except ServiceError as e:
+            return failed_response(self._explain_base(), str(e))
+        except Exception as e:
+            return failed_response(self._explain_base(), f"explanation failed: {type(e).__name__}: {e}")
+        return explain_response(r, self.model_id, note or f"explained {len(rows)} points")
+
+    def _explain_base(self) -> Explain.Response:
+        resp = Explain.Response()
+        resp.model_id = self.model_id
+        return resp
+
+    def recommend(self, req: RecommendSettings.Request) -> RecommendSettings.Response:
+        """``~/recommend_settings``: the settings and head orientation predicted to give the smallest error in a
+        region of a judged scan (never raises: failures → success false)."""
+        from ..recommend import recommend
+
+        base = RecommendSettings.Response()
+        base.model_id = self.model_id
+        v = self.values
+        try:
+            if self.model is None:
+                raise ServiceError(self.degraded)
+            judged = self.history.get(stamp_to_ns(req.scan_stamp))
+            if judged.settings is None:
+                raise ServiceError("the judged scan has no settings")
+            c = req.region_center
+            big = max(judged.n_points, 1)
+            rows, _ = select_rows(judged, np.asarray(req.indices, dtype=np.int64), m_to_mm([c.x, c.y, c.z]),
+                                  m_to_mm(float(req.region_radius)), big)
+            cands = []
+            for i, m in enumerate(req.candidates):
+                try:
+                    s, *_ = settings_from_msg(m)
+                    cands.append(s.validate(self.scanner.settings_range))
+                except (SettingsError, ValueError) as e:
+                    raise ServiceError(f"candidate {i}: {e}") from e
+            tol_mm = m_to_mm(req.tolerance if req.tolerance > 0 else v["tolerance"])
+            max_tilt = v["recommend_max_tilt"] if req.max_tilt == 0 else max(req.max_tilt, 0.0)
+            max_turn = v["recommend_max_turn"] if req.max_turn == 0 else max(req.max_turn, 0.0)
+            if not (math.isfinite(max_tilt) and math.isfinite(max_turn)):
+                raise ServiceError("max_tilt / max_turn must be finite")
+            rec = recommend(self.model, judged.context, rows, judged.features, judged.pose, self.scanner,
+                            judged.settings, cands or None, max_points=int(v["recommend_max_points"]),
+                            max_tilt=max_tilt, tilt_steps=int(v["recommend_tilt_steps"]), max_turn=max_turn,
+                            turn_steps=int(v["recommend_turn_steps"]),
+                            grazing_incidence_deg=v["grazing_incidence_deg"], grazing_view_deg=v["grazing_view_deg"],
+                            min_coverage=v["recommend_min_coverage"], max_seconds=v["recommend_max_seconds"])
+        except (ServiceError, ValueError) as e:
+            return failed_response(base, str(e))
+        except Exception as e:
+            return failed_response(base, f"recommendation failed: {type(e).__name__}: {e}")
+        return recommend_response(rec, judged.frame_id, judged.stamp_ns, self.scanner.id, tol_mm, self.model_id)
+
+
+def _lean_context(ctx: Any) -> Any:
+    """The feature context without its cache of intermediates (kept in the scan history: memory)."""
+    try:
+        return replace(ctx, _cache={})
+    except TypeError:
+        return ctx

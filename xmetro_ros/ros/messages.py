@@ -1,0 +1,126 @@
+"""Messages of the node's outputs and services, built from the core's results (mm → m here, through
+:mod:`xmetro_ros.ros.convert`'s unit functions): ``ScanQuality``, ``Explain`` and ``RecommendSettings`` responses.
+
+No DDS: plain message objects, shared by the live node and ``xmetro predict``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from geometry_msgs.msg import Quaternion
+
+from .. import flags as fl
+from ..msg import ScannerSettings, ScanQuality, SettingsCandidate
+from ..srv import Explain, RecommendSettings
+from .convert import mm_to_m, settings_to_msg
+
+__all__ = [
+    "MAX_ALTERNATIVES",
+    "error_code_value",
+    "explain_response",
+    "failed_response",
+    "fill_quality",
+    "new_quality",
+    "quaternion_msg",
+    "recommend_response",
+]
+
+#: Alternatives listed in a ``RecommendSettings`` response.
+MAX_ALTERNATIVES = 20
+
+
+def error_code_value(code: str) -> int:
+    """``ScanQuality.ERROR_<code>`` as an integer (codes: docs/node.md)."""
+    return int(getattr(ScanQuality, f"ERROR_{code}"))
+
+
+def new_quality(header: Any, model_id: str, settings: ScannerSettings | None, defaulted: bool) -> ScanQuality:
+    """A ScanQuality for a scan with ``header``, before judging: no verdict, zero counts."""
+    q = ScanQuality()
+    q.header = header
+    q.model_id = model_id
+    q.flag_names = list(fl.FLAG_NAMES)
+    q.flag_counts = [0] * len(fl.FLAG_NAMES)
+    if settings is not None:
+        q.settings = settings
+    q.settings_defaulted = bool(defaulted)
+    return q
+
+
+def fill_quality(q: ScanQuality, summary: dict[str, Any]) -> ScanQuality:
+    """Copy a judged scan's summary (:meth:`xmetro_ros.scan_handler.ScanHandler.summarize`, mm) into ``q`` (m)."""
+    q.verdict = int(summary["verdict"])
+    q.error_code = ScanQuality.ERROR_NONE
+    q.message = summary["message"]
+    q.points_received = int(summary["points_received"])
+    q.points_valid = int(summary["points_valid"])
+    q.points_flagged = int(summary["points_flagged"])
+    q.flag_counts = [int(c) for c in summary["flag_counts"]]
+    q.mean_abs_error = [mm_to_m(float(v)) for v in summary["mean_abs_error_mm"]]
+    q.p95_abs_error = [mm_to_m(float(v)) for v in summary["p95_abs_error_mm"]]
+    q.usable_fraction = float(summary["usable_fraction"])
+    return q
+
+
+def failed_response(response: Any, message: str) -> Any:
+    """``response`` (an Explain or RecommendSettings response) marked failed with ``message``."""
+    response.success = False
+    response.message = message
+    return response
+
+
+def explain_response(result: dict[str, Any], model_id: str, message: str) -> Explain.Response:
+    """``~/explain``'s answer from :func:`xmetro_ros.scan_history.explain_rows`'s result (mm → m)."""
+    resp = Explain.Response()
+    resp.model_id = model_id
+    resp.success = True
+    resp.message = message
+    resp.feature_names = result["feature_names"]
+    resp.feature_units = result["feature_units"]
+    resp.axis_names = result["axis_names"]
+    resp.base_values = mm_to_m(result["base_values"]).tolist()
+    resp.point_indices = result["point_indices"].astype(np.uint32).tolist()
+    resp.shap_values = mm_to_m(result["shap"]).ravel().tolist()
+    resp.feature_values = result["features"].ravel().tolist()
+    resp.predictions = mm_to_m(result["predictions"]).ravel().tolist()
+    resp.mean_abs_shap = mm_to_m(result["mean_abs_shap"]).ravel().tolist()
+    return resp
+
+
+def quaternion_msg(xyzw: Any) -> Quaternion:
+    """A geometry_msgs/Quaternion from (x, y, z, w)."""
+    x, y, z, w = (float(a) for a in xyzw)
+    return Quaternion(x=x, y=y, z=z, w=w)
+
+
+def recommend_response(rec: Any, frame_id: str, stamp_ns: int, scanner_id: str, tolerance_mm: float,
+                       model_id: str) -> RecommendSettings.Response:
+    """``~/recommend_settings``' answer from a :class:`xmetro_ros.recommend.Recommendation` (mm → m); candidate
+    settings are stamped like the judged scan (``stamp_ns``, ``frame_id``)."""
+
+    def settings_msg(cand: Any) -> ScannerSettings:
+        return settings_to_msg(cand.settings, cand.pose, frame_id, stamp_ns, scanner_id)
+
+    b = rec.best
+    resp = RecommendSettings.Response()
+    resp.model_id = model_id
+    resp.success = True
+    resp.message = rec.note
+    resp.recommended_settings = settings_msg(b)
+    resp.recommended_orientation = quaternion_msg(b.quaternion)
+    resp.mean_abs_error_before = mm_to_m(rec.before.mean_mm)
+    resp.p95_abs_error_before = mm_to_m(rec.before.p95_mm)
+    resp.mean_abs_error_after = mm_to_m(b.mean_mm)
+    resp.p95_abs_error_after = mm_to_m(b.p95_mm)
+    resp.coverage_before = rec.before.coverage
+    resp.coverage_after = b.coverage
+    resp.meets_tolerance = bool(b.p95_mm <= tolerance_mm)
+    resp.alternatives = [
+        SettingsCandidate(settings=settings_msg(a), orientation=quaternion_msg(a.quaternion),
+                          mean_abs_error=mm_to_m(a.mean_mm), p95_abs_error=mm_to_m(a.p95_mm), coverage=a.coverage,
+                          score=mm_to_m(a.score_mm))
+        for a in rec.ranked[:MAX_ALTERNATIVES]
+    ]
+    return resp

@@ -1,0 +1,88 @@
+"""The node's two output clouds, built byte by byte into buffers the messages adopt (no extra copies).
+
+- ``~/deviations``: one record per (kept) input point, x, y, z as received and the predicted error dx, dy, dz,
+  dnorm (float32, metres), flags (uint16), via :func:`xmetro_ros.ros.cloud.create_cloud_from_arrays`;
+- ``~/corrected``: the input cloud (same fields, byte order and point layout) with x, y, z + predicted error.
+
+Frames: the input cloud's (``header.frame_id``); lengths in metres as on every topic.
+"""
+
+from __future__ import annotations
+
+import array
+import sys
+from typing import Any
+
+import numpy as np
+from sensor_msgs.msg import PointCloud2, PointField
+
+from .cloud import create_cloud_from_arrays, dtype_from_fields, new_cloud_message
+from .convert import M_PER_MM, mm_to_m
+
+__all__ = ["corrected_cloud", "deviations_cloud"]
+
+
+def deviations_cloud(header: Any, points_m: np.ndarray, dev_mm: np.ndarray, flags: np.ndarray, height: int,
+                     width: int) -> PointCloud2:
+    """``~/deviations``: ``points_m`` (N, 3) float32 metres as received, ``dev_mm`` (N, 3) predicted error in mm
+    (NaN where none), ``flags`` (N,) uint16; ``height × width = N``."""
+    dev_m = mm_to_m(dev_mm).astype(np.float32)
+    dnorm = np.sqrt(np.einsum("ij,ij->i", dev_m, dev_m))
+    return create_cloud_from_arrays(header, {
+        "x": points_m[:, 0], "y": points_m[:, 1], "z": points_m[:, 2],
+        "dx": dev_m[:, 0], "dy": dev_m[:, 1], "dz": dev_m[:, 2], "dnorm": dnorm, "flags": flags,
+    }, height=height, width=width, is_dense=False)
+
+
+def corrected_cloud(msg: PointCloud2, dev_mm: np.ndarray, keep: np.ndarray | None, height: int,
+                    width: int) -> PointCloud2:
+    """The input cloud (same fields and byte order) with x, y, z + predicted error; unpredicted points unchanged.
+
+    Args:
+        msg: the input cloud (already validated).
+        dev_mm: (N, 3) predicted error, mm, one row per kept point (NaN where none).
+        keep: indices of the kept input points (decimated scans), None for all.
+        height, width: shape of the output (``height × width = N``).
+    """
+    # float32 arithmetic on purpose: the published clouds are float32 and must stay bit-identical to the goldens.
+    add = dev_mm.astype(np.float32) * np.float32(M_PER_MM)
+    add[~np.isfinite(add)] = 0.0
+    by = {f.name: f for f in msg.fields}
+    ps = int(msg.point_step)
+    fx = by["x"]
+    n_out = height * width
+    # The message's own array('B') buffer, filled once (assigning bytes would make the message copy them again).
+    buf = array.array("B", b"\0") * (n_out * ps)
+    fast = (not msg.is_bigendian and sys.byteorder == "little" and ps % 4 == 0 and fx.offset % 4 == 0
+            and all(by[a].datatype == PointField.FLOAT32 for a in "xyz")
+            and by["y"].offset == fx.offset + 4 and by["z"].offset == fx.offset + 8
+            and int(msg.row_step) == ps * int(msg.width))
+    if fast and n_out:
+        # The common case (our own clouds): one copy of the (kept) records into the buffer, x, y, z adjusted there.
+        src = np.frombuffer(msg.data, dtype=np.float32).reshape(-1, ps // 4)
+        rec = np.frombuffer(buf, dtype=np.float32).reshape(n_out, ps // 4)
+        if keep is not None:
+            np.take(src, keep, axis=0, out=rec)
+        else:
+            rec[:] = src
+        c = fx.offset // 4
+        rec[:, c:c + 3] += add
+        del rec
+    elif n_out:
+        dt = dtype_from_fields(msg.fields, ps, is_bigendian=bool(msg.is_bigendian))
+        raw = np.ndarray(shape=(int(msg.height), int(msg.width)), dtype=dt, buffer=msg.data,
+                         strides=(int(msg.row_step), ps)).reshape(-1)
+        rec = raw[keep] if keep is not None else raw.copy()
+        for i, axis in enumerate(("x", "y", "z")):
+            rec[axis] = rec[axis] + add[:, i].astype(rec[axis].dtype)
+        np.frombuffer(buf, dtype=np.uint8)[:] = np.ascontiguousarray(rec).reshape(-1).view(np.uint8)
+    out = new_cloud_message()  # adopts buf without a copy
+    out.header = msg.header
+    out.height, out.width = height, width
+    out.fields = list(msg.fields)
+    out.is_bigendian = bool(msg.is_bigendian)
+    out.point_step = int(msg.point_step)
+    out.row_step = int(msg.point_step) * width
+    out.is_dense = False
+    out.data = buf
+    return out
