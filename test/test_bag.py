@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from builtin_interfaces.msg import Time
+from conftest import need_shared
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -91,6 +92,7 @@ def _as_plain(m) -> object:
 
 # -- schema and metadata ---------------------------------------------------------------------------------------
 def test_schema_text_equals_cpp_rosbag2_and_type_hash():
+    need_shared(BAGS)
     with open(BAGS / "rosbag2_pointcloud2_truck" / "outlier.mcap_0.mcap", "rb") as f:
         sc = make_reader(f).get_summary().schemas[1]
     assert sc.name == "sensor_msgs/msg/PointCloud2" and sc.encoding == "ros2msg"
@@ -158,6 +160,7 @@ def test_split_by_duration_and_bad_arguments(tmp_path):
 
 # -- bags written by others --------------------------------------------------------------------------------------
 def test_reads_cpp_rosbag2_pointcloud_bag():
+    need_shared(BAGS)
     r = BagReader(BAGS / "rosbag2_pointcloud2_truck")
     msgs = r.read_all()
     assert r.report.ok and len(msgs) == 3
@@ -171,6 +174,7 @@ def test_reads_cpp_rosbag2_pointcloud_bag():
 
 
 def test_reads_rosbag2_talker_and_split_bags():
+    need_shared(BAGS)
     r = BagReader(BAGS / "rosbag2_talker")
     msgs = r.read_all()
     assert r.report.ok and len(msgs) == 20

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import need_shared
 
 from xmetro_ros.artifacts import ArtifactSpecError, Sphere
 from xmetro_ros.geometry import HeadPose, unit
@@ -174,6 +175,7 @@ def test_holm_and_noise_candidate_not_significant():
 
 
 def test_bad_inputs(tmp_path):
+    need_shared(DATA)
     with pytest.raises(LoopInputError, match="does not exist"):
         load_inputs([tmp_path / "missing.mcap"], "sphere:radius=40")
     with pytest.raises(ArtifactSpecError):

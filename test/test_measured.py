@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import need_shared
 
 from xmetro_ros import measured as M
 from xmetro_ros.fitting import fit_circle_2d
@@ -17,11 +18,13 @@ ATC5 = DATA / "atc5_profiler_sphere_r40"
 
 @pytest.fixture(scope="module")
 def nist():
+    need_shared(NIST)
     return {c.name: c for c in M.load_nist_set(NIST)}
 
 
 @pytest.fixture(scope="module")
 def atc5():
+    need_shared(ATC5)
     return M.load_atc5(ATC5)
 
 
@@ -61,6 +64,7 @@ def test_atc5_profiles(atc5):
 
 def test_atc5_to_base_sphere(atc5):
     # README: all 15 profiles to the base with pose × HTM → R = 39.961 mm, RMS 130 um (uncleaned profiles).
+    need_shared(ATC5)
     _, r, rms = M.atc5_sphere_fit(M.load_atc5(ATC5, clean=False))
     assert r == pytest.approx(39.961, abs=0.002) and rms == pytest.approx(0.130, abs=0.002)
     _, r, rms = M.atc5_sphere_fit(atc5)

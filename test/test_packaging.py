@@ -27,8 +27,9 @@ def test_wheel_carries_interfaces_libraries_config_and_model(tmp_path: Path):
     (wheel,) = tmp_path.glob("xmetro_ros-*.whl")
     assert wheel.name.startswith(f"xmetro_ros-{_package_xml_version()}-"), wheel.name
     names = set(zipfile.ZipFile(wheel).namelist())
-    for layer in ("xmetro_ros/ros/node.py", "xmetro_ros/ros/core.py", "xmetro_ros/apps/cli.py", "xmetro_ros/bag/codec.py",
-                  "xmetro_ros/sim/scanner_sim.py", "xmetro_ros/learn/train.py", "xmetro_ros/loop/run.py"):
+    for layer in ("xmetro_ros/ros/node.py", "xmetro_ros/ros/core.py", "xmetro_ros/apps/cli.py",
+                  "xmetro_ros/bag/codec.py", "xmetro_ros/sim/scanner_sim.py", "xmetro_ros/learn/train.py",
+                  "xmetro_ros/loop/run.py"):
         assert layer in names, layer
     data = next((n.split("/")[0] for n in names if n.endswith(".data/data/lib/libxmetro_ros__rosidl_generator_py.so")),
                 None)

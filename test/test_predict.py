@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import need_shared
 
 from xmetro_ros.apps.predict import PredictError, predict_bag
 from xmetro_ros.apps.replay import replay_bag
@@ -83,6 +84,7 @@ def test_comparison_reports_any_difference(predicted):
 
 
 def test_predict_truck_bag_defaults_settings(tmp_path):
+    need_shared(TRUCK)
     res = predict_bag(TRUCK, tmp_path / "truck.mcap")
     assert len(res.outputs) == 3 and res.inputs == ["cloud_1", "cloud_2", "cloud_3"]
     assert all(o.quality.settings_defaulted and int(o.quality.error_code) == 0 for o in res.outputs)

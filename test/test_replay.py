@@ -8,6 +8,7 @@ import shutil
 from pathlib import Path
 
 import pytest
+from conftest import need_shared
 
 from xmetro_ros.apps.replay import ReplayError, replay_bag
 from xmetro_ros.bag.reader import BagFormatError, BagReader
@@ -62,6 +63,7 @@ def test_rate_mode_replays_every_scan(live_node):
 
 
 def test_truck_bag_from_cpp_rosbag2_replays_with_defaulted_settings(live_node):
+    need_shared(TRUCK)
     res = replay_bag(TRUCK, fast=True)
     assert res.scans_sent == 3 and res.complete and res.settings_sent == 0
     assert [s.topic for s in res.scans] == ["cloud_1", "cloud_2", "cloud_3"]
@@ -97,7 +99,7 @@ def test_empty_and_scanless_bags_are_refused_clearly(tmp_path):
         replay_bag(empty, fast=True)
     with pytest.raises(FileNotFoundError):
         replay_bag(tmp_path / "missing.mcap")
-    talker = ROOT.parent / "shared" / "data" / "bags" / "rosbag2_talker"
+    talker = need_shared(ROOT.parent / "shared" / "data" / "bags" / "rosbag2_talker")
     with pytest.raises(ReplayError, match="no sensor_msgs/msg/PointCloud2 input topic"):
         replay_bag(talker, fast=True)
     with pytest.raises(ReplayError, match="not in the bag"):
@@ -112,6 +114,7 @@ def test_replay_without_node_fails_with_reason(tmp_path):
 
 
 def test_cli_replay_prints_summary(live_node, capsys):
+    need_shared(TRUCK)
     import argparse
 
     from xmetro_ros.apps.replay import register, run

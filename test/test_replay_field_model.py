@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import need_shared
 from test_loop import sim_scan
 
 from xmetro_ros.apps.replay import replay_bag
@@ -120,6 +121,7 @@ def test_node_reads_field_from_pointcloud2(node, loop_model, tmp_path):
 
 
 def test_cloud_without_the_field_is_refused(node):
+    need_shared(TRUCK)
     res = replay_bag(TRUCK, fast=True, topics=["cloud_2"])
     q = res.scans[0].quality
     assert int(q.error_code) == ScanQuality.ERROR_MISSING_INPUT_FIELD and q.verdict == ScanQuality.VERDICT_ERROR

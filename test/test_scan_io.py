@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import need_shared
 
 from xmetro_ros.artifacts import Cylinder, Sphere
 from xmetro_ros.bag.reader import BagReader
@@ -99,6 +100,7 @@ def test_simulated_scan_roundtrip(tmp_path):
 
 
 def test_foreign_clouds_get_default_settings_and_errors_are_clear(tmp_path):
+    need_shared(BAGS)
     scans = read_scans(BAGS / "rosbag2_pointcloud2_truck", topic="cloud_2")
     (s,) = scans
     model = ScannerModel.load()

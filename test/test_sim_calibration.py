@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import need_shared
 
 from xmetro_ros.sim.calibration import (
     ANGLE_BINS,
@@ -32,6 +33,7 @@ def test_circle_fit_recovers_a_noisy_arc():
 
 
 def test_loader_reads_the_15_profiles():
+    need_shared(ATC5)
     profiles = load_atc5_profiles(ATC5)
     assert len(profiles) == 15
     assert all(p.ndim == 2 and p.shape[1] == 2 and 1300 <= len(p) <= 2600 for p in profiles)
@@ -42,6 +44,7 @@ def test_loader_reads_the_15_profiles():
 def test_simulated_noise_matches_measured_profiles():
     """Binned circle-fit residual RMS of simulated vs real profiles, within the stated relative tolerance
     (20 % below 60 deg, 25 % at 60-80 deg). The >80 deg bin (15 measured points) is reported, not tested."""
+    need_shared(ATC5)
     rows = calibration_table(ATC5, seed=0)
     assert [r["bin_deg"] for r in rows] == list(ANGLE_BINS)
     meas = [r["measured_um"] for r in rows[:3]]
