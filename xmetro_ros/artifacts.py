@@ -57,6 +57,8 @@ def _points(points: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Sphere(Artifact):
+    """A sphere of ``radius`` (mm) centred at ``center`` (scan frame, mm)."""
+
     radius: float
     center: tuple[float, float, float] = (0.0, 0.0, 0.0)
     kind = "sphere"
@@ -155,6 +157,8 @@ class Cylinder(Artifact):
 
 @dataclass(frozen=True)
 class Plane(Artifact):
+    """A plane through ``point`` with unit ``normal`` (scan frame, mm)."""
+
     point: tuple[float, float, float] = (0.0, 0.0, 0.0)
     normal: tuple[float, float, float] = (0.0, 0.0, 1.0)
     kind = "plane"
@@ -221,7 +225,7 @@ def parse_artifact(spec: str) -> tuple[Artifact, bool]:
             raise ArtifactSpecError(f"{name}={opts[name]!r} in {spec!r} is not three numbers separated by ';'") from e
         if len(v) != 3:
             raise ArtifactSpecError(f"{name} in {spec!r} needs three numbers separated by ';'")
-        return v  # type: ignore[return-value]
+        return v
 
     fit = opts.get("center", "").lower() == "fit"
     if fit:

@@ -98,7 +98,8 @@ def study_split(table_or_sizes: Table | Sequence[int], n_train: int = 100, n_tes
     if not groups:
         raise DatasetError("no clouds to split")
     rng = np.random.default_rng(seed)
-    train, tests = [], [[] for _ in range(n_draws)]
+    train: list[np.ndarray] = []
+    tests: list[list[np.ndarray]] = [[] for _ in range(n_draws)]
     for k, rows in enumerate(groups):
         if len(rows) < n_train + n_test:
             raise DatasetError(f"cloud {k} has {len(rows)} points, the protocol needs at least {n_train + n_test}")

@@ -124,8 +124,10 @@ class FeatureRegistry:
             return f
         if isinstance(name, str) and name.startswith(FIELD_PREFIX) and len(name) > len(FIELD_PREFIX):
             fname = name[len(FIELD_PREFIX):]
-            return Feature(name, "field", f"per-point field '{fname}' of the cloud", (f"field:{fname}",),
-                           lambda ctx, _f=fname, _n=name: ctx.field(_f, _n))
+            def field_value(ctx: FeatureContext, _f: str = fname, _n: str = name) -> np.ndarray:
+                return ctx.field(_f, _n)
+
+            return Feature(name, "field", f"per-point field '{fname}' of the cloud", (f"field:{fname}",), field_value)
         raise UnknownFeatureError(
             f"unknown feature {name!r} (registered: {', '.join(self._features)}; or field_<name> for a cloud field)"
         )
@@ -157,7 +159,7 @@ class FeatureContext:
         L, V: (M, 3) unit vectors toward the laser source / camera.
         standoff: (M,) the study's R_y (= 90 − Z in the study's set-up), mm.
         source_distance: (M,) distance to the laser source, mm.
-        settings: the scan settings.
+        settings: the scan settings (None for measured data that declare none: settings features then fail).
         fields: per-point fields {name: (M,)}.
         points: (M, 3) points, mm.
         u, s: (M,) position along the laser line / scan direction in the head frame, mm.
@@ -169,7 +171,7 @@ class FeatureContext:
     V: np.ndarray
     standoff: np.ndarray
     source_distance: np.ndarray
-    settings: ScanSettings
+    settings: ScanSettings | None
     fields: dict[str, np.ndarray] = field(default_factory=dict)
     points: np.ndarray | None = None
     u: np.ndarray | None = None
@@ -308,13 +310,19 @@ def _ang(ctx: FeatureContext) -> np.ndarray:
 
 REGISTRY = FeatureRegistry()
 
+def _settings(ctx: FeatureContext) -> ScanSettings:
+    """The context's scan settings; FeatureError when it has none (measured data)."""
+    if ctx.settings is None:
+        raise FeatureError("this feature needs the scan settings, which this data does not declare")
+    return ctx.settings
+
 _STUDY: list[Feature] = [
     Feature("lateral_density", "/mm", "scan setting: points per mm along the laser line", ("settings",),
-            lambda ctx: ctx.settings.lateral_density),
+            lambda ctx: _settings(ctx).lateral_density),
     Feature("direction_density", "/mm", "scan setting: profiles per mm along the scan direction", ("settings",),
-            lambda ctx: ctx.settings.direction_density),
+            lambda ctx: _settings(ctx).direction_density),
     Feature("exposure_time", "ms", "scan setting: exposure time of each profile", ("settings",),
-            lambda ctx: ctx.settings.exposure_ms),
+            lambda ctx: _settings(ctx).exposure_ms),
     *[Feature(f"N_{a}", "1", f"N_{a}: outward unit surface normal (eq. 1)", ("normals",), _col("normals", j))
       for j, a in enumerate("xyz")],
     *[Feature(f"ori_{a}", "1", f"(N - L)_{a} (eq. 2)", ("normals", "L"), _diff("L", j)) for j, a in enumerate("xyz")],

@@ -28,6 +28,8 @@ class FitError(ValueError):
 
 @dataclass(frozen=True)
 class SphereFit:
+    """A fitted sphere or circle: centre and radius (mm), RMS of the residuals (mm)."""
+
     center: np.ndarray
     radius: float
     rms: float
@@ -65,7 +67,7 @@ def _refine(p: np.ndarray, c0: np.ndarray, r0: float | None, radius: float | Non
     d = p.shape[1]
 
     def split(x: np.ndarray) -> tuple[np.ndarray, float]:
-        return (x, float(radius)) if fixed else (x[:d], float(x[d]))
+        return (x, float(radius)) if radius is not None else (x[:d], float(x[d]))
 
     def res(x: np.ndarray) -> np.ndarray:
         c, r = split(x)
@@ -78,7 +80,12 @@ def _refine(p: np.ndarray, c0: np.ndarray, r0: float | None, radius: float | Non
         j = -diff / np.where(n > 0, n, 1)
         return j if fixed else np.hstack([j, -np.ones((len(p), 1))])
 
-    x0 = c0 if fixed else np.append(c0, r0)
+    if fixed:
+        x0 = c0
+    elif r0 is None:
+        raise ValueError("a free-radius fit needs a starting radius r0")
+    else:
+        x0 = np.append(c0, r0)
     sol = least_squares(res, x0, jac=jac, method="lm" if loss == "linear" else "trf", loss=loss, f_scale=f_scale)
     c, r = split(sol.x)
     rr = res(sol.x)

@@ -14,10 +14,19 @@ The study's set-up is the identity orientation with the head ~90 mm above the ar
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-__all__ = ["HeadPose", "PointGeometry", "matrix_to_quat", "point_geometry", "quat_to_matrix", "unit"]
+__all__ = ["HeadPose", "PointGeometry", "matrix_to_quat", "point_geometry", "quat_to_matrix", "unit", "vec3"]
+
+
+def vec3(v: Any) -> tuple[float, float, float]:
+    """Three numbers (a sequence or array of 3) as a plain float triple. Raises ValueError on another length."""
+    a = np.asarray(v, dtype=float).reshape(-1)
+    if a.shape != (3,):
+        raise ValueError(f"expected three numbers, got {a.shape[0]}")
+    return float(a[0]), float(a[1]), float(a[2])
 
 
 def unit(v: np.ndarray, axis: int = -1) -> np.ndarray:
@@ -58,9 +67,9 @@ def matrix_to_quat(r: np.ndarray) -> np.ndarray:
     else:
         s = np.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1]) * 2
         q = [(r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s, (r[1, 0] - r[0, 1]) / s]
-    q = np.asarray(q)
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
+    qa = np.asarray(q, dtype=float)
+    qa /= np.linalg.norm(qa)
+    return -qa if qa[3] < 0 else qa
 
 
 @dataclass(frozen=True)
@@ -156,7 +165,7 @@ def point_geometry(points: np.ndarray, pose: HeadPose, baseline_mm: float, dtype
     # Column-wise arithmetic on contiguous rows, no (N,3) @ (3,3) matmul: BLAS threading makes that 100x slower
     # on a busy machine, and this runs on every live scan of up to ~200k points.
     r = pose.rotation
-    d = np.ascontiguousarray((pts - pose.position).T, dtype=dtype)  # (3, N)
+    d: np.ndarray = np.ascontiguousarray((pts - pose.position).T, dtype=dtype)  # (3, N)
     identity = bool(np.array_equal(r, np.eye(3)))
     if identity:
         x, y, z = d

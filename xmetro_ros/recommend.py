@@ -44,6 +44,8 @@ __all__ = [
 
 @dataclass
 class Candidate:
+    """One evaluated set-up: settings and head rotation, predicted mean / p95 |error| (mm), coverage, score."""
+
     settings: ScanSettings
     rotation: np.ndarray          # 3x3, in the head frame, relative to the current head pose
     pose: HeadPose                # the resulting head pose (scan frame, mm)
@@ -62,6 +64,8 @@ class Candidate:
 
 @dataclass
 class Recommendation:
+    """The search result: the best candidate, the current set-up (``before``), the ranking and a note."""
+
     best: Candidate
     before: Candidate
     ranked: list[Candidate]       # best first, every kept candidate

@@ -8,6 +8,7 @@ __all__ = ["config_path", "default_model_dir", "package_dir", "repo_root"]
 
 
 def package_dir() -> Path:
+    """Directory of the installed (or checked-out) ``xmetro_ros`` package."""
     return Path(__file__).resolve().parent
 
 

@@ -12,6 +12,7 @@ import numpy as np
 
 from .artifacts import Artifact, Cylinder, Plane, Sphere
 from .fitting import FitError, fit_circle_2d, fit_cylinder_center, fit_sphere, fit_sphere_center
+from .geometry import vec3
 
 __all__ = [
     "MAX_FIT_RMS_FRACTION",
@@ -54,17 +55,17 @@ def fit_artifact_position(points: np.ndarray, artifact: Artifact) -> Artifact:
     p = _check(points, artifact)
     if isinstance(artifact, Sphere):
         c = fit_sphere_center(p, artifact.radius, init=artifact.c)
-        fitted: Artifact = Sphere(artifact.radius, tuple(float(v) for v in c))
+        fitted: Artifact = Sphere(artifact.radius, vec3(c))
     elif isinstance(artifact, Cylinder):
         a = artifact.a
         c0 = np.asarray(artifact.center, dtype=float)
         c = fit_cylinder_center(p, artifact.radius, a, init=c0)
         c = c + (c0 @ a) * a  # keep the nominal axial position of the centre (irrelevant to axial errors)
-        fitted = Cylinder(artifact.radius, tuple(float(v) for v in c), tuple(float(v) for v in a))
+        fitted = Cylinder(artifact.radius, vec3(c), vec3(a))
     elif isinstance(artifact, Plane):
         n = artifact.n
         off = float(np.mean((p - np.asarray(artifact.point, dtype=float)) @ n))
-        fitted = Plane(tuple(float(v) for v in np.asarray(artifact.point, dtype=float) + off * n), tuple(n))
+        fitted = Plane(vec3(np.asarray(artifact.point, dtype=float) + off * n), vec3(n))
         return fitted
     else:  # pragma: no cover - the base class is abstract
         raise TypeError(f"cannot fit the position of a {type(artifact).__name__}")

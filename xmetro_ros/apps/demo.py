@@ -323,6 +323,7 @@ def _summary_lines(res: DemoResult) -> list[str]:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``xmetro demo`` to the ``xmetro`` sub-commands."""
     p = subparsers.add_parser("demo", help="start a node, replay bags/demo.mcap, write out/demo/report.html",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", default="out/demo", help="output directory (default out/demo)")
@@ -333,6 +334,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """``xmetro demo``: run the demo and print its summary; returns the exit code."""
     os.environ.setdefault("PYTHONUNBUFFERED", "1")
     try:
         res = run_demo(args.out, args.bag, args.model, args.timeout)

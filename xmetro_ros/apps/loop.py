@@ -10,6 +10,7 @@ __all__ = ["register", "run"]
 
 
 def register(subparsers) -> None:
+    """Add ``xmetro loop`` to the ``xmetro`` sub-commands."""
     p = subparsers.add_parser("loop", help="trace the residual of the model to an undeclared effect and add it",
                               description=__doc__)
     p.add_argument("inputs", nargs="+", help="MCAP bags, NIST .xyz files/dir, or the AT C5 profile dir")
@@ -28,6 +29,7 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """``xmetro loop``: load the inputs, run the loop, write the report (and the augmented model); exit code."""
     from ..artifacts import ArtifactSpecError
     from ..loop.data import LoopInputError
     from ..loop.inputs import load_inputs

@@ -204,6 +204,7 @@ def _parse_params(items: list[str] | None) -> dict[str, str]:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``xmetro predict`` to the ``xmetro`` sub-commands."""
     p = subparsers.add_parser("predict", help="judge a bag's scans offline, as the live node would",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("bag", help="a .mcap file or a rosbag2 directory")
@@ -215,6 +216,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """``xmetro predict``: judge the bag offline and print the summary; returns the exit code."""
     from ..bag.reader import BagFormatError
 
     try:

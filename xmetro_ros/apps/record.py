@@ -19,6 +19,7 @@ __all__ = ["register", "run"]
 
 
 def register(subparsers: Any) -> None:
+    """Add ``xmetro record`` to the ``xmetro`` sub-commands."""
     p = subparsers.add_parser("record", help="record ROS 2 topics to MCAP (rosbag2 format)", description=__doc__)
     p.add_argument("topics", nargs="*", metavar="TOPIC", help="topics to record (default: all, discovered "
                    "periodically)")
@@ -38,6 +39,7 @@ def register(subparsers: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """``xmetro record``: record until SIGINT / SIGTERM / ``--duration``; returns the exit code."""
     import rclpy
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor

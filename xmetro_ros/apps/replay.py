@@ -30,7 +30,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..flags import verdict_name
 from ..ros.convert import stamp_to_ns
@@ -44,6 +44,9 @@ from ..ros.node_outputs import (
     classify_topics,
     describe_loss,
 )
+
+if TYPE_CHECKING:
+    from ..bag.writer import BagWriter
 
 __all__ = ["ReplayError", "ReplayResult", "ScanOutcome", "register", "replay_bag", "run"]
 
@@ -167,12 +170,12 @@ class _Replayer:
         self.qualities: list[Any] = []
         self.counts = {k: 0 for k in self.out}
         self.diag_errors: list[str] = []
-        self.writer = None
+        self.writer: BagWriter | None = None
         self.record = record
         self.spinner = NodeSpinner(lambda ctx: Node("xmetro_replay", context=ctx))
         self.node = self.spinner.node
-        self.pub_scan = None
-        self.pub_settings = None
+        self.pub_scan: Any = None
+        self.pub_settings: Any = None
         self.subs: list[Any] = []
 
     # -- set-up --------------------------------------------------------------------------------------------------
@@ -251,7 +254,7 @@ class _Replayer:
             self.counts[key] += 1
             if key == "quality":
                 self.qualities.append(msg)
-            elif key == "diagnostics":
+            elif key == "diagnostics" and msg is not None:
                 for st in msg.status:
                     if st.level == b"\x02" or st.level == 2:
                         self.diag_errors.append(f"{st.name}: {st.message}")
@@ -419,6 +422,7 @@ def replay_bag(
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``xmetro replay`` to the ``xmetro`` sub-commands."""
     p = subparsers.add_parser("replay", help="replay a bag's scans and settings into a running xmetro_node",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("bag", help="a .mcap file or a rosbag2 directory")
@@ -433,6 +437,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """``xmetro replay``: replay the bag into the running node and print the summary; returns the exit code."""
     try:
         res = replay_bag(args.bag, rate=args.rate, fast=args.fast, record=args.record, node_name=args.node,
                          topics=args.topic, discovery_timeout=args.timeout, answer_timeout=args.timeout,

@@ -21,6 +21,7 @@ QUICK_CONFIGS = (0, 13, 26)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``xmetro simulate`` to the ``xmetro`` sub-commands."""
     p = subparsers.add_parser(
         "simulate",
         help="simulate the study campaign (spheres x 27 configurations + cylinder) to DIR/campaign.mcap",
@@ -43,6 +44,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """``xmetro simulate``: simulate the campaign into ``DIR/campaign.mcap`` + manifest; returns the exit code."""
     from tqdm import tqdm
 
     from ..ros.scan_io import write_scans  # BAG's module; imported here so `xmetro --help` stays light

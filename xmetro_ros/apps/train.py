@@ -17,6 +17,7 @@ DEFAULT_FAMILY = "pointnet_multi"  # compact 3-axis PointNet: the node's default
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``xmetro train`` and ``xmetro export-default`` to the ``xmetro`` sub-commands."""
     p = subparsers.add_parser("train", help="run the study's learning pipeline (metrics, tables, SHAP, ONNX)")
     p.add_argument("--profile", choices=sorted(PROFILES), default="quick",
                    help="quick: < 2 min smoke run; full: the study's protocol; micro: tests")
@@ -49,6 +50,7 @@ def _families(text: str) -> tuple[str, ...]:
 
 
 def run_train(args: argparse.Namespace) -> int:
+    """``xmetro train``: load or simulate the data, run the study, write its results; returns the exit code."""
     from ..learn.study import load_data, run_study
 
     try:
@@ -66,6 +68,7 @@ def run_train(args: argparse.Namespace) -> int:
 
 
 def run_export_default(args: argparse.Namespace) -> int:
+    """``xmetro export-default``: train (or copy) a model set, check it loads, install it; exit code."""
     from ..inference import ModelSet
     from ..resources import default_model_dir
 

@@ -36,7 +36,7 @@ def serialize(msg: Any) -> bytes:
     return serialize_message(msg)
 
 
-def deserialize(data: bytes | memoryview, type_name: str) -> Any:
+def deserialize(data: bytes, type_name: str) -> Any:
     """The rclpy message of ``type_name`` held in the CDR bytes ``data``. Raises UnknownTypeError."""
     from rclpy.serialization import deserialize_message
 

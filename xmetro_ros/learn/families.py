@@ -43,6 +43,7 @@ class UnknownFamilyError(ValueError):
 
 
 def check_family(name: str) -> str:
+    """``name`` if it is a known model family; UnknownFamilyError otherwise."""
     if name not in FAMILIES:
         raise UnknownFamilyError(f"unknown model family {name!r}; known: {', '.join(FAMILIES)}")
     return name
@@ -99,6 +100,7 @@ PROFILES: dict[str, Profile] = {
 
 
 def get_profile(name: str | Profile) -> Profile:
+    """The training profile called ``name`` (a Profile is returned as is); KeyError naming the known ones."""
     if isinstance(name, Profile):
         return name
     if name not in PROFILES:

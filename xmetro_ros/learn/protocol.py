@@ -98,15 +98,18 @@ def config_keys(X: np.ndarray, feature_names: list[str]) -> np.ndarray | None:
 
 
 def mae(y: np.ndarray, p: np.ndarray) -> float:
+    """Mean absolute error of predictions ``p`` against targets ``y`` (their unit)."""
     return float(np.mean(np.abs(np.asarray(y, np.float64) - np.asarray(p, np.float64))))
 
 
 def r2(y: np.ndarray, p: np.ndarray) -> float:
+    """Coefficient of determination R² of ``p`` against ``y`` (0 when ``y`` is constant)."""
     y = np.asarray(y, np.float64)
     ss = float(np.sum((y - y.mean()) ** 2))
     return float(1.0 - np.sum((y - np.asarray(p, np.float64)) ** 2) / ss) if ss > 0 else float("nan")
 
 
 def summarize(values: list[float]) -> dict[str, float]:
+    """Mean, population std and the values themselves of the per-draw metrics."""
     v = np.asarray(values, np.float64)
     return {"mean": float(v.mean()), "std": float(v.std(ddof=0)), "draws": [float(x) for x in v]}

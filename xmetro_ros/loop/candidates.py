@@ -44,6 +44,8 @@ FIELD_DUPLICATES = {"line_position": "u", "scan_time": "t"}
 
 @dataclass(frozen=True)
 class CandidateInfo:
+    """A candidate explanatory variable: name, kind (continuous / identity), description, unit."""
+
     name: str
     kind: str  # "continuous" | "identity"
     unit: str

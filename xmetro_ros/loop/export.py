@@ -24,6 +24,8 @@ def export_loop_model(result: LoopResult, data: LoopData, out_dir: str | Path) -
     missing = [n for n in result.feature_names if n not in REGISTRY]
     if missing:
         raise LoopInputError(f"features {missing} are not in the feature registry; the node could not compute them")
+    if result.X is None:
+        raise LoopInputError("the loop result holds no feature table to export from")
     X_train = result.X[result.train_mask]
     model = result.model
     if model is None:

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ..artifacts import Artifact, parse_artifact
-from ..geometry import unit
+from ..geometry import unit, vec3
 from ..scan import Scan
 from .data import LoopData, LoopInputError
 
@@ -34,7 +34,7 @@ def _errors(points: np.ndarray, artifact: Artifact, fit_center: bool) -> tuple[n
     if fit_center and isinstance(artifact, Sphere):
         # Start the fixed-radius fit from a free sphere fit: measured frames put the sphere far from the origin.
         c0, _r, _rms = fit_sphere(points)
-        artifact = Sphere(artifact.radius, tuple(float(v) for v in c0))
+        artifact = Sphere(artifact.radius, vec3(c0))
     return errors_with_fit(points, artifact, fit_center)
 
 
@@ -199,6 +199,8 @@ def load_inputs(paths: list[str | Path], artifact_spec: str | None, feature_name
                 scans = read_bag(Path(p))
                 parts.append(from_scans(scans, art, fit, feature_names=feature_names,
                                         names=[f"{Path(p).stem}#{i}" for i in range(len(scans))]))
+            elif art is None:  # checked above: measured inputs need an artifact
+                raise LoopInputError("measured inputs need --artifact")
             elif kind == "nist":
                 parts.append(from_nist(Path(p), art, fit))
             else:

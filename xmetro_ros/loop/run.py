@@ -66,6 +66,8 @@ class LoopConfig:
 
 @dataclass
 class LoopResult:
+    """What ``run_loop`` found: the report, the final model and the data it was fitted on."""
+
     report: dict
     model: AxisModel | None  # the final retrained model (None with a given model or nothing to retrain)
     feature_names: list[str]

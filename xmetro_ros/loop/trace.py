@@ -27,6 +27,7 @@ Everything is vectorised over points and permutations (``np.bincount``), no per-
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy.stats import norm
@@ -250,6 +251,7 @@ def trace_candidates(
         kind = kinds.get(name, "continuous")
         folds = folds_block if kind == "identity" else folds_group
         rng = np.random.default_rng([cfg.seed, i])
+        res: dict[str, Any]
         if np.unique(x).size < 2:
             res = {"score": 0.0, "score_axes": dict.fromkeys("xyz", 0.0), "score_normal": 0.0, "p_value": 1.0,
                    "null_mean": 0.0, "null_p95": 0.0}

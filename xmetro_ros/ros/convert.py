@@ -191,7 +191,7 @@ def scan_to_cloud(
             raise ValueError(f"scan field {name!r} clashes with a coordinate")
         if name not in scan.fields:
             raise KeyError(f"scan has no field {name!r} (fields: {list(scan.fields)})")
-        a = np.asarray(scan.fields[name]).reshape(n)
+        a: np.ndarray = np.asarray(scan.fields[name]).reshape(n)
         if a.dtype.kind == "f":
             a = (a / MM_PER_M if name in LENGTH_FIELDS else a).astype(np.float32)
         arrays[name] = a
@@ -221,7 +221,7 @@ def cloud_to_scan(
     """
     validate_cloud(msg, require_valid_points=False)
     if extra_fields is None:
-        extra_fields = [k for k in dtype_from_fields(msg.fields).names if k not in ("x", "y", "z")]
+        extra_fields = [k for k in (dtype_from_fields(msg.fields).names or ()) if k not in ("x", "y", "z")]
     xyz, extras = xyz_fields(msg, list(extra_fields))
     h, w = int(msg.height), int(msg.width)
     lead = (h, w) if h > 1 else (h * w,)

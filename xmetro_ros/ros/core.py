@@ -41,6 +41,8 @@ __all__ = ["CoreOutput", "SettingsEntry", "XmetroCore"]
 
 @dataclass
 class SettingsEntry:
+    """One received ScannerSettings: its stamp (ns), message, decoded values (None when invalid) and error."""
+
     stamp_ns: int
     msg: ScannerSettings
     settings: ScanSettings | None
@@ -156,7 +158,7 @@ class XmetroCore:
         n = int(msg.width) * int(msg.height)
         entry = self.settings_for(stamp_ns)
         defaulted = entry is None
-        if defaulted:
+        if entry is None:
             entry = self.default_entry(msg.header.frame_id, stamp_ns)
         q = new_quality(msg.header, self.model_id, entry.msg, defaulted)
         try:
@@ -169,6 +171,8 @@ class XmetroCore:
             if self.values["check_frame"] and not defaulted and entry.frame_id != msg.header.frame_id:
                 return self._error(q, "FRAME_MISMATCH", f"scan frame {msg.header.frame_id!r} differs from the "
                                                         f"settings' frame {entry.frame_id!r}", n, t0)
+            if entry.settings is None or entry.pose is None:  # only invalid entries lack them (handled above)
+                return self._error(q, "INVALID_SETTINGS", "settings without values", n, t0)
             scan = cloud_to_scan(msg, entry.settings, entry.pose, self.scanner.id)
             res = self.handler.process(scan, settings_defaulted=defaulted)
         except CloudFormatError as e:

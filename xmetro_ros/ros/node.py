@@ -61,11 +61,13 @@ def scan_qos(reliability: str = "reliable", depth: int = 5) -> QoSProfile:
 
 
 def settings_qos() -> QoSProfile:
+    """QoS of the ``scanner_settings`` subscription: reliable, transient-local, keep last 10."""
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def output_qos(depth: int = 10) -> QoSProfile:
+    """QoS of the node's publishers: reliable, volatile, keep last ``depth``."""
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.VOLATILE)
 

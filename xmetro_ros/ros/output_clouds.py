@@ -70,12 +70,12 @@ def corrected_cloud(msg: PointCloud2, dev_mm: np.ndarray, keep: np.ndarray | Non
         del rec
     elif n_out:
         dt = dtype_from_fields(msg.fields, ps, is_bigendian=bool(msg.is_bigendian))
-        raw = np.ndarray(shape=(int(msg.height), int(msg.width)), dtype=dt, buffer=msg.data,
-                         strides=(int(msg.row_step), ps)).reshape(-1)
-        rec = raw[keep] if keep is not None else raw.copy()
+        raw: np.ndarray = np.ndarray(shape=(int(msg.height), int(msg.width)), dtype=dt, buffer=msg.data,
+                                     strides=(int(msg.row_step), ps)).reshape(-1)
+        recs: np.ndarray = raw[keep] if keep is not None else raw.copy()
         for i, axis in enumerate(("x", "y", "z")):
-            rec[axis] = rec[axis] + add[:, i].astype(rec[axis].dtype)
-        np.frombuffer(buf, dtype=np.uint8)[:] = np.ascontiguousarray(rec).reshape(-1).view(np.uint8)
+            recs[axis] = recs[axis] + add[:, i].astype(recs[axis].dtype)
+        np.frombuffer(buf, dtype=np.uint8)[:] = np.ascontiguousarray(recs).reshape(-1).view(np.uint8)
     out = new_cloud_message()  # adopts buf without a copy
     out.header = msg.header
     out.height, out.width = height, width

@@ -20,6 +20,8 @@ __all__ = ["PARAMS", "ParamSpec", "declare_all", "validate", "values_from_node"]
 
 @dataclass(frozen=True)
 class ParamSpec:
+    """One node parameter: name, default, unit, range / choices, read-only flag and description."""
+
     name: str
     default: Any
     unit: str
@@ -98,11 +100,11 @@ def _descriptor(p: ParamSpec) -> ParameterDescriptor:
         d.type = ParameterType.PARAMETER_BOOL
     elif isinstance(p.default, int):
         d.type = ParameterType.PARAMETER_INTEGER
-        if p.lo is not None:
+        if p.lo is not None and p.hi is not None:
             d.integer_range = [IntegerRange(from_value=int(p.lo), to_value=int(p.hi), step=1)]
     elif isinstance(p.default, float):
         d.type = ParameterType.PARAMETER_DOUBLE
-        if p.lo is not None:
+        if p.lo is not None and p.hi is not None:
             d.floating_point_range = [FloatingPointRange(from_value=float(p.lo), to_value=float(p.hi), step=0.0)]
     else:
         d.type = ParameterType.PARAMETER_STRING

@@ -64,7 +64,10 @@ class Recorder:
         self.unknown_types: dict[str, str] = {}  # topic → type name not installed here
         self.error: BaseException | None = None
         self.discover()
-        self._timer = node.create_timer(discovery_period, self.discover)
+        self._timer = node.create_timer(discovery_period, self._discover_tick)
+
+    def _discover_tick(self) -> None:
+        self.discover()
 
     @staticmethod
     def _abs(topic: str) -> str:

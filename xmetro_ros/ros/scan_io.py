@@ -134,7 +134,7 @@ def write_scans(
             w.add_metadata(f"{SCAN_RECORD}{i}", {"json": json.dumps(record)})
             if exact:
                 buf = io.BytesIO()
-                arrays = {"points": np.asarray(scan.points, dtype=np.float64)}
+                arrays: dict[str, Any] = {"points": np.asarray(scan.points, dtype=np.float64)}
                 if scan.expected_error is not None:
                     arrays["expected_error"] = np.asarray(scan.expected_error, dtype=np.float64)
                 arrays.update({f"field_{k}": np.asarray(v) for k, v in scan.fields.items()})
