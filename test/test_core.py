@@ -27,7 +27,7 @@ def test_quaternion_round_trip():
 def test_geometry_of_the_study_setup():
     pose = HeadPose.looking_down(90.0)
     pts = np.array([[0.0, 0.0, 20.0], [10.0, 5.0, 0.0]])
-    g = point_geometry(pts, pose, baseline_mm=52.0)
+    g = point_geometry(pts, pose, camera_mm=52.0)
     # The point under the source: laser straight up, stand-off = 90 - Z (the study's R_y).
     assert np.allclose(g.L[0], [0, 0, 1])
     assert np.allclose(g.standoff, 90.0 - pts[:, 2])

@@ -21,7 +21,7 @@ def ctx_for(points: np.ndarray, normals: np.ndarray, pose: HeadPose | None = Non
     n = np.asarray(normals, np.float32)
     return F.FeatureContext(normals=n, L=g.L, V=g.V, standoff=g.standoff, source_distance=g.source_distance,
                             settings=S, fields=fields or {}, points=np.asarray(points, float), u=g.u, s=g.s,
-                            baseline_mm=52.0)
+                            camera_mm=(0.0, 52.0, 0.0))
 
 
 def row(ctx: F.FeatureContext, i: int = 0) -> dict[str, float]:

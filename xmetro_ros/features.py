@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from .geometry import HeadPose, point_geometry
+from .geometry import HeadPose, camera_vector, point_geometry
 from .scanner import ScannerModel, ScanSettings
 
 __all__ = [
@@ -177,7 +177,7 @@ class FeatureContext:
     u: np.ndarray | None = None
     s: np.ndarray | None = None
     normal_quality: np.ndarray | None = None
-    baseline_mm: float | None = None
+    camera_mm: tuple[float, float, float] | None = None
     _cache: dict[str, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -212,25 +212,26 @@ class FeatureContext:
             u=g.u,
             s=g.s,
             normal_quality=prepared.normal_quality,
-            baseline_mm=prepared.scanner.baseline_mm,
+            camera_mm=prepared.scanner.camera_mm,
         )
 
-    def with_pose(self, pose: HeadPose, scanner: ScannerModel | float | None = None) -> FeatureContext:
+    def with_pose(self, pose: HeadPose, scanner: ScannerModel | float | Any = None) -> FeatureContext:
         """The same points and normals seen from another head pose (L, V, standoff, u, s recomputed; normals are
-        NOT re-oriented). ``scanner``: ScannerModel or baseline in mm (default: this context's baseline)."""
+        NOT re-oriented). ``scanner``: ScannerModel, camera position (head frame, mm) or baseline in mm (default:
+        this context's camera)."""
         if self.points is None:
             raise FeatureError("with_pose needs the context's points")
         if isinstance(scanner, ScannerModel):
-            baseline = scanner.baseline_mm
+            camera = scanner.camera_mm
         elif scanner is not None:
-            baseline = float(scanner)
-        elif self.baseline_mm is not None:
-            baseline = self.baseline_mm
+            camera = camera_vector(scanner)
+        elif self.camera_mm is not None:
+            camera = self.camera_mm
         else:
-            raise FeatureError("with_pose needs a scanner (or baseline_mm) to place the camera")
-        g = point_geometry(self.points, pose, baseline, dtype=self.normals.dtype.type)
+            raise FeatureError("with_pose needs a scanner (or camera_mm) to place the camera")
+        g = point_geometry(self.points, pose, camera, dtype=self.normals.dtype.type)
         return replace(self, L=g.L, V=g.V, standoff=g.standoff, source_distance=g.source_distance, u=g.u, s=g.s,
-                       baseline_mm=baseline, _cache={})
+                       camera_mm=camera, _cache={})
 
     def subset(self, rows: np.ndarray) -> FeatureContext:
         """The context restricted to ``rows`` (indices or boolean mask) of its points."""

@@ -3,8 +3,9 @@
 Frames (see docs/conventions.md):
 - World (``frame_id`` of the scan, REP 103 axes): the artifact's frame; lengths in millimetres inside the package.
 - Head: the laser line (fan) runs along head +X, the head scans along head +Y, the laser points along head -Z.
-  The laser source sits at the head origin; the camera sits ``baseline_mm`` along head +Y from the source and
-  looks back at the laser plane (triangulation). While scanning, the head translates along its own +Y axis, so the
+  The laser source sits at the head origin; the camera sits at ``camera_mm`` in the head frame (the study's
+  scanner: ``(0, baseline, 0)``, at the laser's height on +Y; another scanner's camera may sit on -Y, above or
+  below the source, or off the line's centre) and looks back at the laser plane (triangulation). While scanning, the head translates along its own +Y axis, so the
   source that lit a point lies on the head's Y axis at that point's head-Y coordinate.
 
 The study's set-up is the identity orientation with the head ~90 mm above the artifact centre: then
@@ -18,7 +19,16 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["HeadPose", "PointGeometry", "matrix_to_quat", "point_geometry", "quat_to_matrix", "unit", "vec3"]
+__all__ = [
+    "HeadPose",
+    "PointGeometry",
+    "camera_vector",
+    "matrix_to_quat",
+    "point_geometry",
+    "quat_to_matrix",
+    "unit",
+    "vec3",
+]
 
 
 def vec3(v: Any) -> tuple[float, float, float]:
@@ -150,13 +160,22 @@ class PointGeometry:
     s: np.ndarray
 
 
-def point_geometry(points: np.ndarray, pose: HeadPose, baseline_mm: float, dtype: type = np.float64) -> PointGeometry:
+def camera_vector(camera: float | Any) -> tuple[float, float, float]:
+    """The camera position in the head frame (mm): a number is a baseline along head +Y (the study's set-up)."""
+    if np.ndim(camera) == 0:
+        return 0.0, float(camera), 0.0
+    return vec3(camera)
+
+
+def point_geometry(points: np.ndarray, pose: HeadPose, camera_mm: float | Any,
+                   dtype: type = np.float64) -> PointGeometry:
     """Laser and camera directions for each point of a scan taken from ``pose``.
 
     Args:
         points: (N, 3) points in the scan frame, mm. Must be finite.
         pose: head pose at scan start.
-        baseline_mm: camera offset from the laser source along head +Y, mm.
+        camera_mm: camera position relative to the laser source in the head frame, mm (3 numbers), or a number:
+            the baseline along head +Y (camera at the laser's height, the study's set-up).
         dtype: float type of the outputs (float32 on the live hot path).
     """
     pts = np.asarray(points)
@@ -175,10 +194,16 @@ def point_geometry(points: np.ndarray, pose: HeadPose, baseline_mm: float, dtype
     # Source lies on the head's Y axis at the point's head-Y coordinate: to_src = (0, y, 0) - p_h = (-x, 0, -z).
     dist = np.sqrt(xz2)
     inv_s = np.divide(1.0, dist, out=np.zeros_like(dist), where=dist > 0)
-    dcam = np.sqrt(xz2 + float(baseline_mm) ** 2)
+    cx, cy, cz = camera_vector(camera_mm)
+    # The camera moves with the source: relative to the profile that lit the point it sits at (cx, cy, cz).
+    if cx == 0.0 and cz == 0.0:  # the common case: fewer passes over the data
+        tx, tz, dcam = -x, -z, np.sqrt(xz2 + cy * cy)
+    else:
+        tx, tz = cx - x, cz - z
+        dcam = np.sqrt(tx * tx + tz * tz + cy * cy)
     inv_c = np.divide(1.0, dcam, out=np.zeros_like(dcam), where=dcam > 0)
     lh = (-x * inv_s, np.zeros_like(x), -z * inv_s)
-    vh = (-x * inv_c, float(baseline_mm) * inv_c, -z * inv_c)
+    vh = (tx * inv_c, cy * inv_c, tz * inv_c)
     L = np.empty((len(x), 3), dtype=x.dtype)
     V = np.empty((len(x), 3), dtype=x.dtype)
     for k in range(3):  # head frame → scan frame: world_k = sum_j R[k, j] head_j

@@ -656,7 +656,7 @@ def prepare_scan(
             normals, quality = nk[sel], qk[sel]  # NaN (undefined) normals get L and quality 0 below
         else:
             normals, quality = estimate_normals(points, radius_mm=cfg.normal_radius_mm, max_nn=cfg.max_nn)
-    geom = point_geometry(points, scan.pose, scanner.baseline_mm, dtype=np.float32)
+    geom = point_geometry(points, scan.pose, scanner.camera_mm, dtype=np.float32)
     # Orient toward the laser source (outward on the lit side of a closed artifact); undefined normals → L, q = 0.
     normals = np.ascontiguousarray(normals, dtype=np.float32)
     bad = ~np.isfinite(normals).all(axis=1)

@@ -73,23 +73,50 @@ class ScanSettings:
 
 @dataclass(frozen=True)
 class ScannerModel:
-    """Geometry and setting levels of a laser line scanner (see config/scanners/default.yaml)."""
+    """Geometry and setting levels of a laser line scanner (see config/scanners/default.yaml).
+
+    Two ways to describe the geometry in the YAML (docs/simulator.md, "Scanner description"):
+
+    - the model's own terms: ``standoff_mm`` (laser source → reference point on the laser axis), ``baseline_mm``
+      (camera along head +Y at the laser's height) or ``camera_mm`` (camera position in the head frame),
+      ``fan_angle_deg``, ``depth_of_field_mm`` (near, far along the laser axis from the source);
+    - data-sheet terms (a real device): ``measuring_range_mm`` (near, far: distances from the sensor-frame origin
+      along the laser axis), ``field_of_view_mm`` (line length at near and at far), ``triangulation_angle_deg``
+      and ``camera_side`` (+y / -y; optional ``camera_height_mm`` along the laser direction), and optionally
+      ``sensor_frame.axes`` (the sensor's x, y, z axes in head-frame coordinates). The laser source is where the
+      fan's edges meet; the sensor-frame origin lies on the laser axis where the measuring range is counted
+      from; the reference stand-off is the middle of the measuring range.
+
+    ``settings_levels`` are optional (a data sheet does not give them): ``study_configurations`` then needs the
+    levels of a campaign (:meth:`with_levels`).
+    """
 
     id: str
     standoff_mm: float
-    baseline_mm: float
+    camera_mm: tuple[float, float, float]
     fan_angle_deg: float
     depth_of_field_mm: tuple[float, float]
-    settings_levels: dict[str, tuple[float, ...]]
+    settings_levels: dict[str, tuple[float, ...]] | None
     default_settings: ScanSettings
     settings_range: dict[str, tuple[float, float]]
     profile_rate_hz: float
     effects: dict[str, Any] = field(default_factory=dict)
     source: str = ""
+    serial: str = ""
+    description: str = ""
+    sensor_origin_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    sensor_axes: tuple[tuple[float, float, float], ...] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+
+    @property
+    def baseline_mm(self) -> float:
+        """Camera offset from the laser source across the laser plane (|head y| of the camera), mm."""
+        return abs(self.camera_mm[1])
 
     @property
     def triangulation_angle_deg(self) -> float:
-        return math.degrees(math.atan2(self.baseline_mm, self.standoff_mm))
+        """Angle between the laser axis and the camera's line of sight to the reference point, degrees."""
+        cx, cy, cz = self.camera_mm
+        return math.degrees(math.atan2(math.hypot(cx, cy), self.standoff_mm + cz))
 
     @classmethod
     def load(cls, path: str | Path | None = None) -> ScannerModel:
@@ -103,34 +130,104 @@ class ScannerModel:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], source: str = "") -> ScannerModel:
+        """From the YAML's mapping (either description, see the class docstring). ValueError naming what is wrong."""
+        where = source or "<dict>"
         try:
-            levels = {k: tuple(float(x) for x in d["settings_levels"][k]) for k in SETTING_NAMES}
+            geom = _datasheet_geometry(d, where) if "measuring_range_mm" in d else _model_geometry(d, where)
+            levels = None
+            if d.get("settings_levels") is not None:
+                levels = {k: tuple(float(x) for x in d["settings_levels"][k]) for k in SETTING_NAMES}
             rng = {k: (float(d["settings_range"][k][0]), float(d["settings_range"][k][1])) for k in SETTING_NAMES}
             model = cls(
                 id=str(d["id"]),
-                standoff_mm=float(d["standoff_mm"]),
-                baseline_mm=float(d["baseline_mm"]),
-                fan_angle_deg=float(d["fan_angle_deg"]),
-                depth_of_field_mm=(float(d["depth_of_field_mm"][0]), float(d["depth_of_field_mm"][1])),
                 settings_levels=levels,
                 default_settings=ScanSettings(**{k: float(d["default_settings"][k]) for k in SETTING_NAMES}),
                 settings_range=rng,
                 profile_rate_hz=float(d.get("profile_rate_hz", 2000.0)),
                 effects=dict(d.get("effects") or {}),
                 source=source,
+                serial=str(d.get("serial", "") or ""),
+                description=str(d.get("description", "") or ""),
+                **geom,
             )
         except (KeyError, TypeError, IndexError) as e:
-            raise ValueError(f"scanner config {source or '<dict>'} is missing or malformed: {e!r}") from e
+            raise ValueError(f"scanner config {where} is missing or malformed: {e!r}") from e
         model.default_settings.validate(model.settings_range)
         return model
 
+    def with_levels(self, levels: dict[str, tuple[float, ...]]) -> ScannerModel:
+        """The same scanner with the settings levels of a campaign."""
+        from dataclasses import replace
+
+        return replace(self, settings_levels={k: tuple(float(x) for x in levels[k]) for k in SETTING_NAMES})
+
     def study_configurations(self) -> list[ScanSettings]:
-        """The 27 (3 x 3 x 3) configurations of the study, in a fixed order (lateral, direction, exposure)."""
+        """The 27 (3 x 3 x 3) configurations of the study, in a fixed order (lateral, direction, exposure).
+
+        Raises:
+            ValueError: the scanner description has no settings levels (give a campaign's, ``with_levels``).
+        """
         lv = self.settings_levels
+        if lv is None:
+            raise ValueError(f"scanner {self.id!r} has no settings levels (a data sheet gives none): take them from "
+                             "the calibration campaign")
         return [
             ScanSettings(a, b, c)
             for a, b, c in itertools.product(lv["lateral_density"], lv["direction_density"], lv["exposure_ms"])
         ]
 
     def validate_settings(self, s: ScanSettings) -> ScanSettings:
+        """``s`` if within this scanner's valid ranges; SettingsError otherwise."""
         return s.validate(self.settings_range)
+
+
+def _pair(v: Any, what: str, where: str) -> tuple[float, float]:
+    a, b = float(v[0]), float(v[1])
+    if not (math.isfinite(a) and math.isfinite(b) and 0 <= a < b):
+        raise ValueError(f"scanner config {where}: {what} must be two increasing non-negative numbers, got {v!r}")
+    return a, b
+
+
+def _model_geometry(d: dict[str, Any], where: str) -> dict[str, Any]:
+    """Geometry in the model's own terms (the original YAML)."""
+    if "camera_mm" in d:
+        cam = tuple(float(x) for x in d["camera_mm"])
+        if len(cam) != 3:
+            raise ValueError(f"scanner config {where}: camera_mm needs three numbers")
+    else:
+        cam = (0.0, float(d["baseline_mm"]), 0.0)
+    return {"standoff_mm": float(d["standoff_mm"]), "camera_mm": cam, "fan_angle_deg": float(d["fan_angle_deg"]),
+            "depth_of_field_mm": _pair(d["depth_of_field_mm"], "depth_of_field_mm", where)}
+
+
+def _datasheet_geometry(d: dict[str, Any], where: str) -> dict[str, Any]:
+    """Geometry from data-sheet terms (see :class:`ScannerModel`), in the model's terms (head frame at the source).
+
+    The laser source is where the fan's edges meet: ``behind`` = its distance to the near end of the measuring
+    range. The measuring range is counted from the sensor-frame origin along the laser axis, so that origin lies
+    on the laser axis ``behind - near`` from the source (head frame: ``(0, 0, near - behind)``)."""
+    near, far = _pair(d["measuring_range_mm"], "measuring_range_mm", where)
+    fov_near, fov_far = (float(x) for x in d["field_of_view_mm"])
+    if not (0 < fov_near < fov_far):
+        raise ValueError(f"scanner config {where}: field_of_view_mm must grow with distance (near < far), "
+                         f"got {d['field_of_view_mm']!r}")
+    half_slope = 0.5 * (fov_far - fov_near) / (far - near)
+    behind = 0.5 * fov_near / half_slope
+    standoff = behind + 0.5 * (far - near)
+    angle = math.radians(float(d["triangulation_angle_deg"]))
+    if not 0 < angle < math.pi / 2:
+        raise ValueError(f"scanner config {where}: triangulation_angle_deg must be in (0, 90)")
+    side = str(d.get("camera_side", "+y")).lower()
+    if side not in ("+y", "-y"):
+        raise ValueError(f"scanner config {where}: camera_side must be +y or -y, got {side!r}")
+    # camera_height_mm: how far the camera sits from the source along the laser direction (toward the part > 0).
+    height = float(d.get("camera_height_mm", 0.0))
+    cy = (standoff - height) * math.tan(angle) * (1.0 if side == "+y" else -1.0)
+    axes = tuple(tuple(float(x) for x in ax)
+                 for ax in (d.get("sensor_frame") or {}).get("axes", ((1, 0, 0), (0, 1, 0), (0, 0, 1))))
+    if len(axes) != 3 or any(len(a) != 3 for a in axes):
+        raise ValueError(f"scanner config {where}: sensor_frame.axes needs three axes of three numbers")
+    return {"standoff_mm": standoff, "camera_mm": (0.0, cy, -height if height else 0.0),
+            "fan_angle_deg": math.degrees(2 * math.atan(half_slope)),
+            "depth_of_field_mm": (behind, behind + (far - near)), "sensor_origin_mm": (0.0, 0.0, near - behind),
+            "sensor_axes": axes}

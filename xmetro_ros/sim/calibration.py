@@ -141,7 +141,7 @@ def calibration_scanner(scanner: ScannerModel | None = None) -> ScannerModel:
     return dataclasses.replace(
         base,
         standoff_mm=ATC5_STANDOFF_MM,
-        baseline_mm=base.baseline_mm * k,
+        camera_mm=(base.camera_mm[0] * k, base.camera_mm[1] * k, base.camera_mm[2] * k),
         depth_of_field_mm=(base.depth_of_field_mm[0] * k, base.depth_of_field_mm[1] * k),
     )
 

@@ -175,8 +175,8 @@ def simulate_scan(
     o, d, t = origins[idx], dirs[idx], depth[idx]
     p = o + t[:, None] * d
     n = artifact.normals(p)
-    # Camera of the profile that lit the point: baseline along head +Y from that profile's source.
-    cam = o + scanner.baseline_mm * pose.rotation[:, 1]
+    # Camera of the profile that lit the point: at scanner.camera_mm (head frame) from that profile's source.
+    cam = o + pose.rotation @ np.asarray(scanner.camera_mm, dtype=float)
     to_cam = cam - p
     dist_cam = np.linalg.norm(to_cam, axis=1)
     v = to_cam / dist_cam[:, None]
