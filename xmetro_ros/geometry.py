@@ -5,8 +5,9 @@ Frames (see docs/conventions.md):
 - Head: the laser line (fan) runs along head +X, the head scans along head +Y, the laser points along head -Z.
   The laser source sits at the head origin; the camera sits at ``camera_mm`` in the head frame (the study's
   scanner: ``(0, baseline, 0)``, at the laser's height on +Y; another scanner's camera may sit on -Y, above or
-  below the source, or off the line's centre) and looks back at the laser plane (triangulation). While scanning, the head translates along its own +Y axis, so the
-  source that lit a point lies on the head's Y axis at that point's head-Y coordinate.
+  below the source, or off the line's centre) and looks back at the laser plane (triangulation). While scanning,
+  the head translates along its own +Y axis, so the source that lit a point lies on the head's Y axis at that
+  point's head-Y coordinate, and the camera moves with it.
 
 The study's set-up is the identity orientation with the head ~90 mm above the artifact centre: then
 ``R_y = 90 - Z`` is ``standoff`` below.
