@@ -156,5 +156,5 @@ def test_single_profile_data_are_refused_with_the_reason(tmp_path, scanner):
     prof[:, 1] = 0.0
     one = replace(scan, points=prof)
     camp = load_campaign(_write(tmp_path, {"position": {"fit": [30, -8, 0]}}, {"position": {"fit": [-32, 6, 2]}}))
-    with pytest.raises(CampaignError, match="scan 0 .*single laser profile"):
+    with pytest.raises(CampaignError, match=r"scan 0 .*single laser profile"):
         assemble(camp, lambda rec: [one])
