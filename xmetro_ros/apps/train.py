@@ -34,7 +34,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e.add_argument("--profile", choices=sorted(PROFILES), default="full")
     e.add_argument("--from", dest="from_dir", default=None,
                    help=f"copy <DIR>/models/{DEFAULT_FAMILY} of a finished `xmetro train` run instead of training")
-    e.add_argument("--out", default=None, help="target directory (default: the package's models/default)")
+    dest = e.add_mutually_exclusive_group(required=True)
+    dest.add_argument("--out", default=None, help="target directory")
+    dest.add_argument("--replace-packaged", action="store_true",
+                      help="replace the model shipped in the package (models/default): never done without it")
     e.set_defaults(func=run_export_default)
 
 
@@ -58,7 +61,7 @@ def run_train(args: argparse.Namespace) -> int:
         scans, source = _read_data(args.data) if args.data else (None, None)
         table, manifest = load_data(args.profile, args.seed, scans=scans, source_manifest=source)
         metrics = run_study(table, manifest, args.profile, args.seed, args.out, families=fams,
-                            threads=args.threads)
+                            threads=args.threads, card_extra={"scanner": _scanner_card()})
     except (ValueError, FileNotFoundError) as e:
         print(f"xmetro train: error: {e}")
         return 2
@@ -72,7 +75,7 @@ def run_export_default(args: argparse.Namespace) -> int:
     from ..inference import ModelSet
     from ..resources import default_model_dir
 
-    target = Path(args.out) if args.out else default_model_dir()
+    target = default_model_dir() if args.replace_packaged else Path(args.out)
     with tempfile.TemporaryDirectory() as tmp:
         if args.from_dir:
             src = Path(args.from_dir) / "models" / DEFAULT_FAMILY
@@ -80,7 +83,8 @@ def run_export_default(args: argparse.Namespace) -> int:
             from ..learn.study import load_data, run_study
 
             table, manifest = load_data(args.profile, args.seed)
-            run_study(table, manifest, args.profile, args.seed, tmp, families=(DEFAULT_FAMILY,))
+            run_study(table, manifest, args.profile, args.seed, tmp, families=(DEFAULT_FAMILY,),
+                      card_extra={"scanner": _scanner_card()})
             src = Path(tmp) / "models" / DEFAULT_FAMILY
         ms = ModelSet.load(src)  # validates before replacing the shipped model
         if target.exists():
@@ -105,3 +109,11 @@ def _read_data(data: str | Path) -> tuple[list[Any], dict[str, Any]]:
         scans += read_scans(f)
         manifest = read_manifest(f) or manifest
     return scans, {"source": "files", "files": [f.name for f in files], "campaign": manifest}
+
+
+def _scanner_card() -> dict[str, str]:
+    """The scanner a simulated campaign stands for (the packaged virtual scanner)."""
+    from ..scanner import ScannerModel
+
+    sc = ScannerModel.load()
+    return {"id": sc.id, "serial": sc.serial, "description": sc.source, "virtual": "true"}

@@ -8,6 +8,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import time
 from collections.abc import Callable, Sequence
@@ -128,9 +129,14 @@ def run_study(
     threads: int = 1,
     log: Callable[[str], None] = print,
     timing: bool = True,
+    card_extra: dict | None = None,
 ) -> dict:
     """Run the protocol for ``families`` on ``table`` (X, y mm, cloud_id, oracle, feature_names); write the
-    artefacts listed in the module doc; return the metrics dict."""
+    artefacts listed in the module doc; return the metrics dict. ``card_extra``: more card entries (the scanner,
+    a calibration campaign, ``trained_by``), over the defaults.
+
+    Model ids are ``<family>-<profile>-s<seed>-<data hash>``: the same data and seed give the same id, other data
+    another one (ids no longer collide across runs)."""
     prof = get_profile(profile)
     for f in families:
         check_family(f)
@@ -200,18 +206,20 @@ def run_study(
 
     # ONNX model sets of the point-split models, checked against the framework.
     tr = splits["point"].train
+    data_hash = hashlib.sha256(np.ascontiguousarray(X).tobytes() + np.ascontiguousarray(y).tobytes()).hexdigest()[:8]
     check_rows = splits["point"].test[0][: 2000]
     check_cloud = cid[check_rows] == cid[check_rows][0]
     for fam, fitted in point_models.items():
         t0 = time.perf_counter()
-        card_extra = {
+        extra = {
             "seed": seed, "profile": prof.name, "data_manifest": manifest,
             "metrics": {s: {ax: {k: metrics["splits"][s]["models"][fam][ax][k]["mean"] for k in ("mae", "r2")}
                             for ax in AXES} for s in metrics["splits"]},
             "trained_by": f"xmetro train --profile {prof.name} --seed {seed}",
+            **(card_extra or {}),
         }
         d = export_model_set(fitted, out / "models" / fam, feature_names=names, X_train=X[tr],
-                             card_extra=card_extra, model_id=f"{fam}-{prof.name}-s{seed}",
+                             card_extra=extra, model_id=f"{fam}-{prof.name}-s{seed}-{data_hash}",
                              check_X=X[check_rows][check_cloud])
         card = json.loads((d / "card.json").read_text())
         info = {"dir": str(Path("models") / fam), "onnx_max_abs_diff_mm": card["onnx_check"]["max_abs_diff_mm"],

@@ -1,0 +1,96 @@
+"""`xmetro calibrate` end to end on recordings made as a driver makes them (PointCloud2 + ScannerSettings, no
+simulator metadata) of a foreign scanner described only in data-sheet terms, with spheres off the origin."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from xmetro_ros.artifacts import Sphere
+from xmetro_ros.bag.writer import BagWriter
+from xmetro_ros.inference import ModelSet
+from xmetro_ros.ros.convert import scan_to_cloud, settings_to_msg
+from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.sim import simulate_scan
+
+RANGES = {"lateral_density": [0.5, 100], "direction_density": [0.1, 50], "exposure_ms": [0.005, 50]}
+SHEET = {"id": "ls-200", "serial": "SN-7", "measuring_range_mm": [150.0, 250.0], "field_of_view_mm": [100.0, 180.0],
+         "triangulation_angle_deg": 20.0, "camera_side": "-y", "settings_range": RANGES,
+         "default_settings": {"lateral_density": 4.0, "direction_density": 2.0, "exposure_ms": 0.5}}
+CENTRES = {"ball_a": (30.0, -8.0, 0.0), "ball_b": (-32.0, 6.0, 2.0)}
+RADIUS = 12.7
+
+
+def _record(path: Path, scanner: ScannerModel, n: int, seed: int) -> list:
+    """A bag as a driver records it: per scan one ScannerSettings and one PointCloud2 showing both balls."""
+    truths = []
+    levels = [(4.0, 2.0, 0.5), (6.0, 3.0, 2.0), (4.0, 3.0, 0.2), (6.0, 2.0, 0.5)]
+    with BagWriter(path) as w:
+        w.add_topic("/scanner_settings", "xmetro_ros/msg/ScannerSettings")
+        w.add_topic("/scan", "sensor_msgs/msg/PointCloud2")
+        for k in range(n):
+            s = ScanSettings(*levels[k % len(levels)])
+            a = simulate_scan(Sphere(RADIUS, CENTRES["ball_a"]), s, scanner=scanner, seed=seed + 2 * k)
+            b = simulate_scan(Sphere(RADIUS, CENTRES["ball_b"]), s, scanner=scanner, seed=seed + 2 * k + 1)
+            stamp = (k + 1) * 10**9
+            scan = replace(a, points=np.concatenate([a.points.reshape(-1, 3), b.points.reshape(-1, 3)]), fields={},
+                           artifact=None, expected_error=None, stamp_ns=stamp)
+            w.write("/scanner_settings", settings_to_msg(s, a.pose, scan.frame_id, stamp - 1000, scanner.id),
+                    stamp - 1000)
+            w.write("/scan", scan_to_cloud(scan, stamp), stamp)
+            truths.append((a, b))
+    return truths
+
+
+@pytest.mark.timeout(900)
+def test_calibrate_a_foreign_scanner_from_driver_recordings(tmp_path):
+    from xmetro_ros.apps.cli import main
+
+    sheet = {**SHEET, "effects": ScannerModel.load().effects}
+    (tmp_path / "ls-200.yaml").write_text(yaml.safe_dump(sheet))
+    scanner = ScannerModel.from_dict(sheet, "ls-200.yaml")
+    _record(tmp_path / "run1.mcap", scanner, 8, seed=10)
+    camp = {"format": "xmetro-campaign/1",
+            "scanner": {"id": "ls-200", "serial": "SN-7", "description": "ls-200.yaml"},
+            "artifacts": [{"id": "ball_a", "diameter_mm": 2 * RADIUS, "size_uncertainty_mm": 0.0008,
+                           "certificate": "C-1"},
+                          {"id": "ball_b", "diameter_mm": 2 * RADIUS, "certificate": "C-2"}],
+            "recordings": [{"bag": "run1.mcap", "placements": [
+                {"artifact": "ball_a", "position": {"known": list(CENTRES["ball_a"]), "uncertainty_mm": 0.002,
+                                                    "source": "CMM"}},
+                {"artifact": "ball_b", "position": {"known": list(CENTRES["ball_b"]), "uncertainty_mm": 0.002,
+                                                    "source": "CMM"}}]}]}
+    (tmp_path / "campaign.yaml").write_text(yaml.safe_dump(camp, sort_keys=False))
+    out = tmp_path / "cal"
+    assert main(["calibrate", str(tmp_path / "campaign.yaml"), "--out", str(out), "--profile", "micro",
+                 "--families", "catboost"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["checks"]["n_measurements"] == 16 and report["checks"]["levels_from_campaign"]
+    assert report["positions"] == "known"
+    assert set(report["vdi2634"]["per_settings"]) == {ScanSettings(*v).label() for v in
+                                                      [(4.0, 2.0, 0.5), (6.0, 3.0, 2.0), (4.0, 3.0, 0.2),
+                                                       (6.0, 2.0, 0.5)]}
+    assert "VDI/VDE 2634-2" in (out / "report.md").read_text()
+    ms = ModelSet.load(out / "models" / "catboost")
+    card = ms.card
+    assert card["scanner"]["id"] == "ls-200" and card["scanner"]["serial"] == "SN-7"
+    assert card["campaign"]["sha256"] and card["campaign"]["artifacts"][0]["certificate"] == "C-1"
+    assert card["trained_by"].startswith("xmetro calibrate campaign.yaml")
+    # the model learned something real about this scanner (micro profile, 16 measurements): held-out R² clearly
+    # above zero on every axis, for held-out points and held-out configurations (measured 0.12-0.37)
+    for split in ("point", "cloud"):
+        for ax in "xyz":
+            assert report["models"][split]["catboost"][ax]["r2"]["mean"] > 0.08, (split, ax)
+
+
+def test_a_campaign_error_is_a_clear_exit(tmp_path, capsys):
+    from xmetro_ros.apps.cli import main
+
+    (tmp_path / "c.yaml").write_text("format: xmetro-campaign/1\nscanner: {id: x}\n")
+    assert main(["calibrate", str(tmp_path / "c.yaml"), "--out", str(tmp_path / "o")]) == 2
+    assert "scanner needs an id and a description" in capsys.readouterr().out
