@@ -158,3 +158,22 @@ def test_single_profile_data_are_refused_with_the_reason(tmp_path, scanner):
     camp = load_campaign(_write(tmp_path, {"position": {"fit": [30, -8, 0]}}, {"position": {"fit": [-32, 6, 2]}}))
     with pytest.raises(CampaignError, match=r"scan 0 .*single laser profile"):
         assemble(camp, lambda rec: [one])
+
+
+def test_the_real_atc5_profiles_are_refused_with_the_reason(tmp_path, scanner):
+    """The measured AT C5 set (../shared/data): 15 single laser profiles of a 40 mm sphere. A calibration campaign
+    built on them is refused, scan by scan, because a profile gives no surface normals."""
+    from conftest import need_shared, shared_data
+
+    from xmetro_ros.geometry import HeadPose
+    from xmetro_ros.measured import load_atc5
+    from xmetro_ros.scan import Scan
+
+    profiles = load_atc5(need_shared(shared_data() / "measured" / "atc5_profiler_sphere_r40"))
+    xz = profiles[0].xz
+    pts = np.c_[xz[:, 0], np.zeros(len(xz)), xz[:, 1]]
+    scan = Scan(points=pts, settings=ScanSettings(4.0, 2.0, 0.5), pose=HeadPose.looking_down(175.0),
+                scanner_id="ls-200", stamp_ns=10**9)
+    camp = load_campaign(_write(tmp_path, {"position": {"fit": [0, 0, 0]}}, {"position": {"fit": [0, 0, 0]}}))
+    with pytest.raises(CampaignError, match=r"recording 0 .*scan 0 .*single laser profile.*cannot be estimated"):
+        assemble(camp, lambda rec: [scan])

@@ -137,3 +137,27 @@ def test_node_process_with_params_file():
         code = proc.stop()
     assert code == 0, "\n".join(proc.lines[-20:])
     assert any("xmetro_node ready" in line for line in proc.lines)
+
+
+def test_a_model_for_another_scanner_is_refused_unless_allowed(tmp_path):
+    """A model set whose card names another scanner leaves the node degraded, saying why; the parameter
+    allow_foreign_model overrides. Legacy cards (no scanner) count as the packaged virtual scanner's."""
+    import json
+    import shutil
+
+    from xmetro_ros.resources import default_model_dir
+    from xmetro_ros.ros.core import XmetroCore, model_scanner_id
+    from xmetro_ros.ros.params import PARAMS
+
+    model = tmp_path / "model"
+    shutil.copytree(default_model_dir(), model)
+    card = json.loads((model / "card.json").read_text())
+    assert model_scanner_id(card) == "xm-ls90"
+    card["scanner"] = {"id": "ls-200", "serial": "SN-7"}
+    (model / "card.json").write_text(json.dumps(card))
+    values = {p.name: p.default for p in PARAMS} | {"model_dir": str(model)}
+    core = XmetroCore(values)
+    assert core.model is None and "trained for scanner 'ls-200'" in core.degraded
+    assert "allow_foreign_model" in core.degraded
+    allowed = XmetroCore(values | {"allow_foreign_model": True})
+    assert allowed.model is not None and allowed.degraded == ""

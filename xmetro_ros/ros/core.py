@@ -36,7 +36,15 @@ from .messages import (
 )
 from .output_clouds import corrected_cloud, deviations_cloud
 
-__all__ = ["CoreOutput", "SettingsEntry", "XmetroCore"]
+__all__ = ["LEGACY_SCANNER_ID", "CoreOutput", "SettingsEntry", "XmetroCore", "model_scanner_id"]
+
+#: Cards written before 0.2.0 record no scanner: they were all trained on the packaged virtual scanner.
+LEGACY_SCANNER_ID = "xm-ls90"
+
+
+def model_scanner_id(card: dict[str, Any]) -> str:
+    """The id of the scanner a model set was trained for (its card's ``scanner.id``; legacy cards: xm-ls90)."""
+    return str((card.get("scanner") or {}).get("id") or LEGACY_SCANNER_ID)
 
 
 @dataclass
@@ -82,6 +90,10 @@ class XmetroCore:
 
             model = ModelSet.load(values["model_dir"] or None, threads=int(values["inference_threads"]))
             model.check_features(REGISTRY)
+            trained_for = model_scanner_id(model.card)
+            if trained_for != self.scanner.id and not values.get("allow_foreign_model", False):
+                raise ValueError(f"model {model.id!r} was trained for scanner {trained_for!r}, this node's scanner "
+                                 f"is {self.scanner.id!r} (scanner_config); set allow_foreign_model to use it anyway")
             self.model = model
         except Exception as e:
             self.degraded = f"model unavailable: {e}"
