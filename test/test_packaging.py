@@ -231,6 +231,7 @@ def test_ament_share_dir_follows_the_ament_index_rule(tmp_path: Path, monkeypatc
     a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
     (a / "share" / "xmetro_ros").mkdir(parents=True)  # no marker: not registered
     for p in (b, c):
+        (p / "share" / "xmetro_ros").mkdir(parents=True)
         (p / "share" / "ament_index" / "resource_index" / "packages").mkdir(parents=True)
         (p / "share" / "ament_index" / "resource_index" / "packages" / "xmetro_ros").write_text("")
     path = os.pathsep.join(map(str, [a, b, c]))

@@ -3,7 +3,7 @@
 
 Stops on SIGINT or SIGTERM (or after ``--duration`` seconds), closes the bag with a complete summary and prints
 what was recorded. A bag killed with SIGKILL keeps every completed chunk readable (``--chunk-size`` bounds what
-can be lost).
+can be lost); ``xmetro bag recover`` then makes it a complete bag (summary, index, metadata.yaml) for every reader.
 """
 
 from __future__ import annotations

@@ -121,6 +121,9 @@ class _YamlCppStyle(yaml.SafeDumper):
     def increase_indent(self, flow: bool = False, indentless: bool = False) -> Any:
         return super().increase_indent(flow, False)
 
+    def ignore_aliases(self, data: Any) -> bool:
+        return True  # a mapping used twice is written twice (yaml-cpp writes no anchors)
+
 
 _YamlCppStyle.add_representer(
     str, lambda d, v: d.represent_scalar("tag:yaml.org,2002:str", v, style='"' if v == "" else None))
