@@ -18,6 +18,7 @@ import numpy as np
 from rclpy.serialization import serialize_message
 from std_msgs.msg import Header
 
+from xmetro_ros.bag import qos_profiles
 from xmetro_ros.bag.reader import BagReader
 from xmetro_ros.bag.writer import BagWriter
 from xmetro_ros.ros.cloud import create_cloud_from_arrays
@@ -61,7 +62,7 @@ def main() -> int:
                 counter[0] += 1
                 p = tmp / f"w{counter[0]}"
                 with BagWriter(p, compression=compression) as w:
-                    w.add_topic("/scan", "sensor_msgs/msg/PointCloud2")
+                    w.add_topic("/scan", "sensor_msgs/msg/PointCloud2", [qos_profiles.CLOUD])
                     for i, m in enumerate(clouds if objects else raws):
                         w.write("/scan", m, (i + 1) * 1_000_000)
                 return p

@@ -36,6 +36,7 @@ from xmetro_ros.ros.dds_env import apply_ros_env  # noqa: E402
 def make_bag(path: Path, n_scans: int, n_points: int, settings_every_scan: bool, seed: int = 0) -> int:
     from std_msgs.msg import Header
 
+    from xmetro_ros.bag import qos_profiles
     from xmetro_ros.bag.writer import BagWriter
     from xmetro_ros.geometry import HeadPose
     from xmetro_ros.ros.cloud import create_cloud_from_arrays
@@ -45,8 +46,8 @@ def make_bag(path: Path, n_scans: int, n_points: int, settings_every_scan: bool,
     rng = np.random.default_rng(seed)
     t0 = 1_735_689_600_000_000_000
     with BagWriter(path) as w:
-        w.add_topic("/scan", "sensor_msgs/msg/PointCloud2")
-        w.add_topic("/scanner_settings", "xmetro_ros/msg/ScannerSettings")
+        w.add_topic("/scan", "sensor_msgs/msg/PointCloud2", [qos_profiles.CLOUD])
+        w.add_topic("/scanner_settings", "xmetro_ros/msg/ScannerSettings", [qos_profiles.SETTINGS])
         for i in range(n_scans):
             stamp = t0 + i * 100_000_000
             s = settings_to_msg(ScanSettings(10.0, 4.0, 0.5), HeadPose.looking_down(90.0), "artifact", stamp - 1000,

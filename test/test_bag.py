@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from builtin_interfaces.msg import Time
 from conftest import need_shared
 from mcap.reader import make_reader
@@ -120,8 +121,11 @@ def test_written_file_has_rosbag2_layout(tmp_path):
     for ch in s.channels.values():
         assert ch.metadata["topic_type_hash"] == schema.type_hash(s.schemas[ch.schema_id].name)
         assert "reliability: reliable" in ch.metadata["offered_qos_profiles"]
-    assert md["rosbag2"]["ROS_DISTRO"] == "kilted" and "rosbag2_bagfile_information" in md["rosbag2"][
-        "serialized_metadata"]
+    # As rosbag2_storage_mcap's update_metadata: the bare BagMetadata (version 9, ros_distro inside), no wrapper.
+    meta = yaml.safe_load(md["rosbag2"]["serialized_metadata"])
+    assert set(md["rosbag2"]) == {"serialized_metadata"}
+    assert meta["version"] == 9 and meta["ros_distro"] == "kilted" and meta["message_count"] == 12
+    assert isinstance(meta["topics_with_message_count"][0]["topic_metadata"]["offered_qos_profiles"], list)
 
 
 def test_roundtrip_bare_and_split_directory(tmp_path):

@@ -149,3 +149,22 @@ def test_offline_predict_creates_no_dds_participant(tmp_path, bag):
     )
     assert _run(code) == "[]"
     assert (tmp_path / "out.mcap").stat().st_size > 0
+
+
+def test_every_package_import_resolves():
+    """Imports of our own modules (also lazy ones inside functions, which only fail when that path runs) name
+    modules that exist."""
+    def exists(mod: str) -> bool:
+        rel = Path(*mod.split("."))
+        return (ROOT / rel).with_suffix(".py").exists() or (ROOT / rel / "__init__.py").exists() \
+            or mod.split(".")[1:2] in (["msg"], ["srv"], ["action"])
+    bad = []
+    for path in _sources():
+        for line, name in _imports(path):
+            if not name.startswith("xmetro_ros"):
+                continue
+            parent = name.rpartition(".")[0]
+            # `from a.b import c`: a.b must be a module; c a module or a name in it (checked when it is a module)
+            if not exists(name) and not exists(parent):
+                bad.append(f"{path.relative_to(PKG)}:{line} imports {name}")
+    assert bad == []

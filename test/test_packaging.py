@@ -67,3 +67,203 @@ def test_one_version_everywhere():
     assert xmetro_ros.__version__ == v
     assert version("xmetro_ros") == v
     assert f"## {v}" in (ROOT / "CHANGELOG.md").read_text()
+# -- the colcon route ----------------------------------------------------------------------------------------------
+def _colcon_install(prefix: Path, build: Path) -> None:
+    """Configure, build and install the CMake project the way `colcon build` does (XMETRO_PIP_BUILD OFF, so CMake
+    installs the Python package, config, model, launch file and scripts too) into ``prefix``, against the ROS 2
+    wheels' install tree (as setup.py does for the pip route)."""
+    import os
+    import shutil
+
+    import rosidl_generator_py
+
+    ros = Path(rosidl_generator_py.__file__).resolve().parents[4]
+    bindir = Path(sys.executable).parent
+    env = dict(os.environ, AMENT_PREFIX_PATH=str(ros), CMAKE_PREFIX_PATH=str(ros),
+               PYTHONPATH=os.pathsep.join(p for p in sys.path if p),
+               LD_LIBRARY_PATH=os.pathsep.join(filter(None, [str(ros / "lib"), os.environ.get("LD_LIBRARY_PATH")])),
+               PATH=os.pathsep.join([str(bindir), str(ros / "bin"), os.environ.get("PATH", "")]))
+    cmake = shutil.which("cmake", path=env["PATH"])
+    if cmake is None:
+        pytest.skip("cmake is not installed (it comes with the build requirements: `make setup`)")
+    gen = ["-G", "Ninja"] if shutil.which("ninja", path=env["PATH"]) else []
+    for cmd in ([cmake, "-S", str(ROOT), "-B", str(build), *gen, "-DCMAKE_BUILD_TYPE=Release",
+                 f"-DCMAKE_INSTALL_PREFIX={prefix}", "-DXMETRO_PIP_BUILD=OFF",
+                 f"-DPython3_EXECUTABLE={sys.executable}"],
+                [cmake, "--build", str(build), "-j", "2"], [cmake, "--install", str(build)]):
+        out = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=900)
+        assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+
+
+@pytest.mark.timeout(900)
+def test_colcon_install_finds_config_and_model_and_starts_renamed_node(tmp_path: Path):
+    """The colcon install layout, really built and installed by CMake into a temporary prefix (~50 s here): config,
+    default model and launch file land in share/xmetro_ros, found through the ament index (AMENT_PREFIX_PATH) by
+    resources.py — as ament_index_python finds them — and the installed `xmetro_node` script starts from there with
+    the installed params file, renamed and namespaced, and holds the file's values (keyed `/**`)."""
+    import json
+    import os
+    import threading
+
+    import rclpy
+    import yaml
+    from rcl_interfaces.srv import GetParameters
+    from rclpy.parameter import parameter_value_to_python
+
+    from xmetro_ros.ros.dds_env import ros_env
+    from xmetro_ros.ros.rclpy_util import NodeSpinner, call_service, wait_for
+
+    prefix, build = tmp_path / "install", tmp_path / "build"
+    _colcon_install(prefix, build)
+    share = prefix / "share" / "xmetro_ros"
+    site = prefix / "lib" / f"python{sys.version_info.major}.{sys.version_info.minor}" / "site-packages"
+    for rel in ("config/xmetro.yaml", "config/scanners/default.yaml", "config/fastdds_localhost.xml",
+                "models/default/card.json", "launch/xmetro.launch.py", "package.xml"):
+        assert (share / rel).is_file(), rel
+    assert (prefix / "share" / "ament_index" / "resource_index" / "packages" / "xmetro_ros").is_file()
+    assert (prefix / "lib" / "xmetro_ros" / "xmetro_node").is_file()
+    assert (site / "xmetro_ros" / "resources.py").is_file() and (site / "xmetro_ros" / "msg").is_dir()
+    assert not (site / "xmetro_ros" / "config").exists() and not (site / "xmetro_ros" / "models").exists()
+
+    env = dict(os.environ)
+    env.update(PYTHONPATH=str(site), AMENT_PREFIX_PATH=os.pathsep.join(
+                   filter(None, [str(prefix), os.environ.get("AMENT_PREFIX_PATH")])),
+               LD_LIBRARY_PATH=os.pathsep.join(filter(None, [str(prefix / "lib"), os.environ.get("LD_LIBRARY_PATH")])),
+               PATH=os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")]))
+    probe = ("import json, xmetro_ros, xmetro_ros.resources as r\n"
+             "try:\n    from ament_index_python.packages import get_package_share_directory as g\n"
+             "    ament = g('xmetro_ros')\nexcept ImportError:\n    ament = None\n"
+             "print(json.dumps({'pkg': xmetro_ros.__file__, 'yaml': str(r.config_path('xmetro.yaml')),"
+             " 'scanner': str(r.config_path('scanners/default.yaml')), 'model': str(r.default_model_dir()),"
+             " 'share': str(r.ament_share_dir()), 'ament': ament}))")
+    out = subprocess.run([sys.executable, "-c", probe], env=env, cwd=tmp_path, capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    got = json.loads(out.stdout)
+    assert got["pkg"] == str(site / "xmetro_ros" / "__init__.py")  # the installed package, not the checkout
+    assert got["yaml"] == str(share / "config" / "xmetro.yaml")
+    assert got["scanner"] == str(share / "config" / "scanners" / "default.yaml")
+    assert got["model"] == str(share / "models" / "default")
+    assert got["share"] == str(share)
+    if got["ament"] is not None:
+        assert got["ament"] == str(share)  # ament_index_python's rule gives the same directory
+
+    # The installed entry point, as `ros2 run xmetro_ros xmetro_node` runs it, renamed and in a namespace, with the
+    # installed params file — one value changed (the file's values are the defaults), its `/**` key kept.
+    shipped = (share / "config" / "xmetro.yaml").read_text()
+    assert "\n    tolerance: 0.0001\n" in shipped and shipped.count("\n/**:\n") == 1
+    params_file = tmp_path / "cell3.yaml"
+    params_file.write_text(shipped.replace("\n    tolerance: 0.0001\n", "\n    tolerance: 0.00025\n"))
+    cmd = [str(prefix / "lib" / "xmetro_ros" / "xmetro_node"), "--ros-args", "--params-file", str(params_file),
+           "-r", "__node:=cell3_judge", "-r", "__ns:=/cell3"]
+    node_env = ros_env(base=env)
+    node_env["PYTHONUNBUFFERED"] = "1"
+    proc = subprocess.Popen(cmd, env=node_env, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    lines: list[str] = []
+    threading.Thread(target=lambda: lines.extend(line.rstrip() for line in proc.stdout), daemon=True).start()
+    try:
+        assert wait_for(lambda: any("xmetro_node ready" in line for line in lines) or proc.poll() is not None, 120)
+        assert proc.poll() is None, "\n".join(lines[-30:])
+        assert not any("DEGRADED" in line for line in lines), "\n".join(lines)
+        expected = yaml.safe_load(params_file.read_text())["/**"]["ros__parameters"]
+        assert expected["tolerance"] == 0.00025
+        assert node_env["ROS_DOMAIN_ID"] == os.environ["ROS_DOMAIN_ID"]  # the test session's (conftest)
+        with NodeSpinner(lambda ctx: rclpy.create_node("colcon_probe", context=ctx)) as sp:
+            client = sp.node.create_client(GetParameters, "/cell3/cell3_judge/get_parameters")
+            res = call_service(client, GetParameters.Request(names=list(expected)), timeout=60)
+        values = dict(zip(expected, (parameter_value_to_python(v) for v in res.values), strict=True))
+        assert values == pytest.approx(expected), "the renamed node did not take the params file's values"
+    finally:
+        proc.send_signal(2)
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=10)
+
+
+# Import name → package.xml key (rosdep key or ROS package), for every third-party module the run-time code uses.
+_DEP_KEYS = {"numpy": "python3-numpy", "scipy": "python3-scipy", "yaml": "python3-yaml", "mcap": "python3-mcap",
+             "zstandard": "python3-zstandard", "onnxruntime": "python3-onnxruntime-pip", "open3d": "python3-open3d",
+             "matplotlib": "python3-matplotlib", "tqdm": "python3-tqdm"}
+_OPTIONAL = {"lz4"}  # only for lz4-compressed chunks of other tools' bags (the reader says so when missing)
+
+
+def test_package_xml_lists_every_runtime_dependency():
+    """Every third-party module imported (at the top or lazily) by the run-time code — everything but learn/, the
+    training area — is an exec_depend/depend of package.xml (ROS packages by name, Python ones by rosdep key)."""
+    import ast
+    import xml.etree.ElementTree as ET
+
+    root = ET.parse(ROOT / "package.xml").getroot()
+    deps = {e.text.strip() for e in root if e.tag in ("depend", "exec_depend")}
+    stdlib = set(sys.stdlib_module_names)
+    used: dict[str, str] = {}
+    for f in sorted((ROOT / "xmetro_ros").rglob("*.py")):
+        rel = f.relative_to(ROOT / "xmetro_ros").parts
+        if rel[0] in ("learn", "msg", "srv"):
+            continue
+        for node in ast.walk(ast.parse(f.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                [node.module] if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module else []
+            for n in names:
+                top = n.split(".")[0]
+                if top not in stdlib and top != "xmetro_ros" and top not in _OPTIONAL:
+                    used.setdefault(top, str(f.relative_to(ROOT)))
+    assert "rclpy" in used and "mcap" in used and "onnxruntime" in used  # the scan sees lazy imports too
+    missing = {m: where for m, where in used.items() if _DEP_KEYS.get(m, m) not in deps}
+    assert not missing, f"imported at run time but not in package.xml: {missing}"
+    assert "ament_cmake_pytest" in {e.text.strip() for e in root if e.tag == "test_depend"}
+
+
+def test_launch_file():
+    """launch/xmetro.launch.py: imported and evaluated when launch/launch_ros are installed; here (no launch wheels)
+    byte-compiled, and its remaps checked against the topics the node subscribes to."""
+    import ast
+    import importlib.util
+    import py_compile
+
+    path = ROOT / "launch" / "xmetro.launch.py"
+    py_compile.compile(str(path), doraise=True)
+    tree = ast.parse(path.read_text())
+    declared = {c.args[0].value for c in ast.walk(tree) if isinstance(c, ast.Call)
+                and getattr(c.func, "id", "") == "DeclareLaunchArgument"}
+    assert declared == {"namespace", "node_name", "params_file", "scan_topic", "settings_topic", "log_level"}
+    remapped = {t.elts[0].value for t in ast.walk(tree) if isinstance(t, ast.Tuple) and len(t.elts) == 2
+                and isinstance(t.elts[0], ast.Constant)}
+    node_src = (ROOT / "xmetro_ros" / "ros" / "node.py").read_text()
+    for name in remapped:
+        assert f'create_subscription(PointCloud2, "{name}"' in node_src or \
+            f'create_subscription(ScannerSettings, "{name}"' in node_src, name
+    assert remapped == {"scan", "scanner_settings"}
+    if importlib.util.find_spec("launch") and importlib.util.find_spec("launch_ros"):
+        spec = importlib.util.spec_from_file_location("xmetro_launch", path)
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        ld = mod.generate_launch_description()
+        assert {a.name for a in ld.get_launch_arguments()} == declared
+
+
+def test_ament_share_dir_follows_the_ament_index_rule(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    """First prefix of AMENT_PREFIX_PATH with the package's marker wins; a prefix with share/<pkg> but no marker
+    does not count — the rule of ament_index_python.get_package_share_directory (compared where installed)."""
+    import os
+
+    from xmetro_ros.resources import ament_share_dir
+
+    a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
+    (a / "share" / "xmetro_ros").mkdir(parents=True)  # no marker: not registered
+    for p in (b, c):
+        (p / "share" / "xmetro_ros").mkdir(parents=True)
+        (p / "share" / "ament_index" / "resource_index" / "packages").mkdir(parents=True)
+        (p / "share" / "ament_index" / "resource_index" / "packages" / "xmetro_ros").write_text("")
+    path = os.pathsep.join(map(str, [a, b, c]))
+    assert ament_share_dir(prefix_path=path) == b / "share" / "xmetro_ros"
+    assert ament_share_dir(prefix_path=str(a)) is None and ament_share_dir("other_pkg", path) is None
+    try:
+        from ament_index_python.packages import get_package_share_directory
+    except ImportError:
+        return
+    monkeypatch.setenv("AMENT_PREFIX_PATH", path)
+    assert Path(get_package_share_directory("xmetro_ros")) == ament_share_dir() == b / "share" / "xmetro_ros"

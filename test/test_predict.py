@@ -12,6 +12,7 @@ from conftest import need_shared
 
 from xmetro_ros.apps.predict import PredictError, predict_bag
 from xmetro_ros.apps.replay import replay_bag
+from xmetro_ros.bag.reader import BagReader
 from xmetro_ros.ros.node_outputs import EXACT, compare_outputs, deviation_arrays, read_outputs
 from xmetro_ros.ros.rclpy_util import NodeSpinner
 
@@ -39,6 +40,15 @@ def test_predict_is_identical_to_the_live_node(predicted, tmp_path):
     # Every field of every message, exactly (processing_latency aside: it is a wall-clock time).
     assert compare_outputs(offline, online, EXACT) == []
     assert all(o.deviations is not None and o.corrected is not None for o in online)
+    # The QoS predict records for the node's outputs is the one the live node offers (replay recorded it from the
+    # graph, which carries every policy but history/depth).
+    from xmetro_ros.bag.qos import offered_qos_list
+
+    pred, live_bag = BagReader(out), BagReader(rec)
+    for topic in ("/xmetro_node/quality", "/xmetro_node/deviations", "/xmetro_node/corrected"):
+        (p,), (q,) = offered_qos_list(pred.offered_qos(topic)), offered_qos_list(live_bag.offered_qos(topic))
+        assert {k: v for k, v in p.items() if k not in ("history", "depth")} == \
+            {k: v for k, v in q.items() if k not in ("history", "depth")}, topic
 
 
 def test_predict_outputs_are_consistent(predicted):

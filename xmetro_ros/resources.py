@@ -1,10 +1,26 @@
-"""Locate packaged data: config files and the shipped default model, in a source tree or an installed package."""
+"""Locate packaged data: config files and the shipped default model, in a source tree or an installed package.
+
+Three layouts, looked up in this order:
+
+1. a source checkout (``package.xml`` next to the package): ``<checkout>/config``;
+2. the pip route (wheel / ``pip install .``): ``config/`` travels inside the Python package;
+3. the colcon route (``colcon build`` in a ROS 2 workspace, CMakeLists.txt): config and the default model are
+   installed into ``<prefix>/share/xmetro_ros/`` and found through the ament index: the first prefix of
+   ``AMENT_PREFIX_PATH`` holding the marker ``share/ament_index/resource_index/packages/xmetro_ros``.
+
+The ament lookup is written here (a few lines) rather than taken from ``ament_index_python``: that package is not a
+dependency of the pip route, and this is all of it that we need (``get_package_share_directory``'s rule; a test
+checks both agree where ``ament_index_python`` is installed).
+"""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
-__all__ = ["config_path", "default_model_dir", "package_dir", "repo_root"]
+__all__ = ["PACKAGE", "ament_share_dir", "config_path", "default_model_dir", "package_dir", "repo_root"]
+
+PACKAGE = "xmetro_ros"
 
 
 def package_dir() -> Path:
@@ -18,19 +34,42 @@ def repo_root() -> Path | None:
     return root if (root / "package.xml").exists() else None
 
 
+def ament_share_dir(package: str = PACKAGE, prefix_path: str | None = None) -> Path | None:
+    """``<prefix>/share/<package>`` of the first ``AMENT_PREFIX_PATH`` prefix that registers ``package`` in the
+    ament resource index (``share/ament_index/resource_index/packages/<package>``); None when none does."""
+    value = os.environ.get("AMENT_PREFIX_PATH", "") if prefix_path is None else prefix_path
+    for prefix in value.split(os.pathsep):
+        if prefix and (Path(prefix) / "share" / "ament_index" / "resource_index" / "packages" / package).is_file():
+            return Path(prefix) / "share" / package
+    return None
+
+
 def config_path(name: str) -> Path:
-    """Path of ``config/<name>``: the checkout's config/ first, else the copy installed in the package."""
+    """Path of ``config/<name>``: the checkout's config/, else the copy in the package, else the ament share dir."""
     candidates = []
     root = repo_root()
     if root is not None:
         candidates.append(root / "config" / name)
     candidates.append(package_dir() / "config" / name)
+    share = ament_share_dir()
+    if share is not None:
+        candidates.append(share / "config" / name)
     for c in candidates:
         if c.exists():
             return c
-    raise FileNotFoundError(f"config file {name!r} not found (looked in: {', '.join(map(str, candidates))})")
+    raise FileNotFoundError(
+        f"config file {name!r} not found (looked in: {', '.join(map(str, candidates))}"
+        + ("" if share is not None else f"; no {PACKAGE} in the ament index of AMENT_PREFIX_PATH") + ")")
 
 
 def default_model_dir() -> Path:
-    """Directory of the shipped default model set (ONNX + card)."""
-    return package_dir() / "models" / "default"
+    """Directory of the shipped default model set (ONNX + card): in the package (checkout, pip route), else
+    ``share/xmetro_ros/models/default`` of the ament index (colcon route). When neither exists, the package path
+    (the caller reports the model as missing there)."""
+    here = package_dir() / "models" / "default"
+    if (here / "card.json").exists():
+        return here
+    share = ament_share_dir()
+    if share is not None and (share / "models" / "default" / "card.json").exists():
+        return share / "models" / "default"
+    return here

@@ -18,6 +18,7 @@ AREAS: dict[str, tuple[str, str]] = {
     "train": ("xmetro_ros.apps.train", "run the study's learning pipeline (metrics, tables, SHAP, ONNX)"),
     "export-default": ("xmetro_ros.apps.train", "train or copy a model set and install it as the default"),
     "record": ("xmetro_ros.apps.record", "record ROS 2 topics to MCAP (rosbag2 format)"),
+    "bag": ("xmetro_ros.apps.record", "bag tools (recover a killed recording)"),
     "replay": ("xmetro_ros.apps.replay", "replay a bag's scans and settings into a running xmetro_node"),
     "predict": ("xmetro_ros.apps.predict", "judge a bag's scans offline, as the live node would"),
     "demo": ("xmetro_ros.apps.demo", "start a node, replay bags/demo.mcap, write out/demo/report.html"),

@@ -105,6 +105,21 @@ def node_values(model_dir: str | Path | None = None, overrides: dict[str, Any] |
     return values
 
 
+def _recorded_qos(reader: Any, topics: list[str]) -> list[dict[str, Any]]:
+    """The offered QoS profiles the source bag recorded for ``topics`` (v9 mappings, duplicates merged); [] when
+    it recorded none or something unreadable (then the caller uses the live default)."""
+    from ..bag.qos import offered_qos_list
+
+    out: list[dict[str, Any]] = []
+    for t in topics:
+        try:
+            profiles = offered_qos_list(reader.offered_qos(t))
+        except Exception:  # malformed YAML or profiles in someone else's bag: fall back to the live default
+            continue
+        out += [p for p in profiles if p not in out]
+    return out
+
+
 def predict_bag(
     bag: str | Path,
     out: str | Path,
@@ -133,6 +148,7 @@ def predict_bag(
         PredictError: no model (the reason), no input scans. FileNotFoundError / BagFormatError: unreadable bag.
         FileExistsError: ``out`` exists.
     """
+    from ..bag import qos_profiles
     from ..bag.reader import BagReader
     from ..bag.writer import BagWriter
     from ..ros.core import XmetroCore
@@ -163,11 +179,13 @@ def predict_bag(
     ns = "/" + node_name.strip("/")
     out_topics = {"quality": f"{ns}/quality", "deviations": f"{ns}/deviations", "corrected": f"{ns}/corrected"}
     with BagWriter(out, compression="zstd") as w:
-        w.add_topic("/scan", POINTCLOUD2)
-        w.add_topic("/scanner_settings", SETTINGS_TYPE)
-        w.add_topic(out_topics["quality"], QUALITY_TYPE)
-        w.add_topic(out_topics["deviations"], POINTCLOUD2)
-        w.add_topic(out_topics["corrected"], POINTCLOUD2)
+        # Inputs as recorded in the source bag (else as a live scanner offers them); outputs as the node offers them.
+        w.add_topic("/scan", POINTCLOUD2, _recorded_qos(reader, scan_topics) or [qos_profiles.CLOUD])
+        w.add_topic("/scanner_settings", SETTINGS_TYPE,
+                    _recorded_qos(reader, settings_topics) or [qos_profiles.SETTINGS])
+        w.add_topic(out_topics["quality"], QUALITY_TYPE, [qos_profiles.output()])
+        w.add_topic(out_topics["deviations"], POINTCLOUD2, [qos_profiles.cloud_output()])
+        w.add_topic(out_topics["corrected"], POINTCLOUD2, [qos_profiles.cloud_output()])
         for m in reader.messages(topics=set(scan_topics) | set(settings_topics)):
             if m.topic in settings_topics:
                 err = core.add_settings(m.msg)

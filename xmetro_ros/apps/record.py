@@ -1,8 +1,9 @@
-"""``xmetro record -o OUT [TOPIC ...]``: record ROS 2 topics to an MCAP bag in rosbag2's format.
+"""``xmetro record -o OUT [TOPIC ...]``: record ROS 2 topics to an MCAP bag in rosbag2's format;
+``xmetro bag recover IN OUT``: make a killed recording complete (summary, index, metadata.yaml) for every reader.
 
 Stops on SIGINT or SIGTERM (or after ``--duration`` seconds), closes the bag with a complete summary and prints
 what was recorded. A bag killed with SIGKILL keeps every completed chunk readable (``--chunk-size`` bounds what
-can be lost).
+can be lost); ``xmetro bag recover`` then makes it a complete bag (summary, index, metadata.yaml) for every reader.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import threading
 import time
 from typing import Any
 
-__all__ = ["register", "run"]
+__all__ = ["register", "run", "run_recover"]
 
 
 def register(subparsers: Any) -> None:
@@ -36,6 +37,39 @@ def register(subparsers: Any) -> None:
                    help="print per-topic counts every this many seconds (0: off)")
     p.add_argument("--exclude", action="append", default=[], help="topic never recorded (repeatable)")
     p.set_defaults(func=run)
+
+    from ..bag.recover import __doc__ as recover_doc
+
+    bag = subparsers.add_parser("bag", help="bag tools (recover a killed recording)",
+                                description="Bag tools for MCAP bags in rosbag2's format.")
+    tools = bag.add_subparsers(dest="bag_command", metavar="TOOL", required=True)
+    r = tools.add_parser("recover", help="turn a killed recording into a complete, indexed bag",
+                         description=recover_doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    r.add_argument("input", metavar="IN", help="the damaged bag: a .mcap file or a rosbag2 directory")
+    r.add_argument("output", metavar="OUT", help="the new bag: OUT.mcap (from a file) or a directory (metadata.yaml "
+                   "written)")
+    r.add_argument("--compression", choices=["auto", "none", "zstd"], default="auto",
+                   help="chunk compression of the output (auto: as the input's)")
+    r.add_argument("--chunk-size", type=int, default=1024 * 1024, help="bytes per chunk (default 1 MiB)")
+    r.set_defaults(func=run_recover)
+
+
+def run_recover(args: argparse.Namespace) -> int:
+    """``xmetro bag recover IN OUT``: 0 when recovered (losses are listed), 1 when nothing could be, 2 bad use."""
+    from ..bag.reader import BagFormatError
+    from ..bag.recover import recover
+    from ..bag.writer import BagWriteError
+
+    try:
+        result = recover(args.input, args.output, compression=args.compression, chunk_size=args.chunk_size)
+    except (BagFormatError, BagWriteError) as e:  # nothing readable, or the output could not be written
+        print(f"xmetro bag recover: {e}", file=sys.stderr)
+        return 1
+    except (FileNotFoundError, FileExistsError, ValueError) as e:
+        print(f"xmetro bag recover: {e}", file=sys.stderr)
+        return 2
+    print(result.describe())
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:
@@ -125,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m xmetro_ros.apps.record record ...``: the same command without the other areas' CLIs."""
+    """``python -m xmetro_ros.apps.record record|bag ...``: the same commands without the other areas' CLIs."""
     parser = argparse.ArgumentParser(prog="xmetro")
     register(parser.add_subparsers(dest="command", required=True))
     args = parser.parse_args(argv)

@@ -199,17 +199,19 @@ class _Replayer:
                         and node.count_publishers(self.out["quality"]) > 0, timeout=left()):
             raise ReplayError(f"no node subscribing to {self.scan_topic} and publishing {self.out['quality']} "
                               f"found within {timeout:g} s (is xmetro_node running, with the same ROS_DOMAIN_ID?)")
-        # Outputs: QoS like the node's publishers; everything recorded as serialized bytes.
+        # Inputs: reliable + transient-local publishers match any subscriber QoS.
+        pub_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        # Outputs: QoS like the node's publishers; everything recorded as serialized bytes, each topic with the QoS
+        # its publishers really offer (ours for the inputs, the node's as the graph reports them for the outputs).
+        out_types = {"quality": QUALITY_TYPE, "deviations": POINTCLOUD2, "corrected": POINTCLOUD2,
+                     "diagnostics": DIAGNOSTICS_TYPE}
         if self.record is not None:
             from ..bag.writer import BagWriter
 
             self.writer = BagWriter(self.record, compression="zstd")
-            self.writer.add_topic(self.scan_topic, POINTCLOUD2)
-            self.writer.add_topic(self.settings_topic, SETTINGS_TYPE)
-            self.writer.add_topic(self.out["quality"], QUALITY_TYPE)
-            self.writer.add_topic(self.out["deviations"], POINTCLOUD2)
-            self.writer.add_topic(self.out["corrected"], POINTCLOUD2)
-            self.writer.add_topic(self.out["diagnostics"], DIAGNOSTICS_TYPE)
+            self.writer.add_topic(self.scan_topic, POINTCLOUD2, [pub_qos])
+            self.writer.add_topic(self.settings_topic, SETTINGS_TYPE, [pub_qos])
         wait_for(lambda: all(node.count_publishers(self.out[k]) > 0 for k in ("deviations", "corrected")),
                  timeout=min(5.0, left()))
         types = {"quality": ScanQuality, "deviations": PointCloud2, "corrected": PointCloud2,
@@ -220,14 +222,17 @@ class _Replayer:
                 self.log(f"replay: node publishes no {topic}: not recorded")
                 continue
             qos = _qos_like(infos, depth=1000 if key == "quality" else 200)
+            if self.writer is not None:
+                from ..bag import qos_profiles
+
+                # No publisher seen yet (only /diagnostics gets here): the node's documented output profile.
+                offered = [i.qos_profile for i in infos] or [qos_profiles.output()]
+                self.writer.add_topic(topic, out_types[key], offered)
 
             def cb(raw: bytes, key: str = key, topic: str = topic, mtype: Any = types[key]) -> None:
                 self._on_output(key, topic, raw, mtype, deserialize_message)
 
             self.subs.append(node.create_subscription(types[key], topic, cb, qos, raw=True))
-        # Inputs: reliable + transient-local publishers match any subscriber QoS.
-        pub_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.pub_scan = node.create_publisher(PointCloud2, self.scan_topic, pub_qos)
         self.pub_settings = node.create_publisher(ScannerSettings, self.settings_topic, pub_qos)
         quality_sub = next((x for x in self.subs if x.topic_name == self.out["quality"]), None)

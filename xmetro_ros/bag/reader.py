@@ -16,6 +16,7 @@ Messages come in file order (log time order within each chunk as written by rosb
 from __future__ import annotations
 
 import logging
+import re
 import struct
 import zlib
 from collections import Counter
@@ -135,6 +136,11 @@ class BagReport:
         return "\n".join(lines)
 
 
+def natural_key(path: Path) -> list[Any]:
+    """Sort key putting rosbag2's split files ``<name>_2.mcap`` before ``<name>_10.mcap`` (name order would not)."""
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", path.name)]
+
+
 def _bag_files(path: Path) -> list[Path]:
     if not path.exists():
         raise FileNotFoundError(f"bag {path} does not exist")
@@ -155,7 +161,7 @@ def _bag_files(path: Path) -> list[Path]:
         if missing:
             raise BagFormatError(f"{path}: files listed in metadata.yaml are missing: {missing}")
         return files
-    files = sorted(path.glob("*.mcap"))
+    files = sorted(path.glob("*.mcap"), key=natural_key)
     if not files:
         raise BagFormatError(f"{path} holds neither metadata.yaml nor *.mcap files")
     return files
@@ -187,8 +193,10 @@ class BagReader:
         self._topics: dict[str, str] | None = None
         self._qos: dict[str, str] = {}
         self._hash: dict[str, str] = {}
+        self._records: dict[str, tuple[Channel, Schema | None]] = {}
         self.metadata: dict[str, dict[str, str]] = {}
         self.attachments: dict[str, bytes] = {}
+        self.attachment_records: dict[str, Attachment] = {}  # name → the whole record (media type, times)
 
     # -- public API ----------------------------------------------------------------------------------------
     def topics(self) -> dict[str, str]:
@@ -206,6 +214,7 @@ class BagReader:
                     topics.setdefault(ch.topic, sc.name if sc else "")
                     self._qos.setdefault(ch.topic, ch.metadata.get("offered_qos_profiles", ""))
                     self._hash.setdefault(ch.topic, ch.metadata.get("topic_type_hash", ""))
+                    self._records.setdefault(ch.topic, (ch, sc))
             self._topics = topics
         return dict(self._topics)
 
@@ -217,6 +226,12 @@ class BagReader:
     def topic_type_hash(self, topic: str) -> str:
         self.topics()
         return self._hash.get(topic, "")
+
+    def channel_records(self) -> dict[str, tuple[Channel, Schema | None]]:
+        """{topic: (its MCAP channel record, its schema record or None)} over all files, first file first; what a
+        copy needs to reproduce a topic exactly (schema text, encodings, channel metadata)."""
+        self.topics()
+        return dict(self._records)
 
     def messages(self, topics: Iterable[str] | None = None, *, deserialize: bool = True) -> Iterator[BagMessage]:
         """Iterate over messages (all topics, or those in ``topics``); fills ``self.report`` as it goes.
@@ -363,6 +378,7 @@ class BagReader:
                     try:
                         att = Attachment.read(ReadDataStream(BytesIO(body)))
                         self.attachments[att.name] = att.data
+                        self.attachment_records[att.name] = att
                     except Exception as e:
                         report.lost.append(LostData(key, pos, 9 + length, f"corrupted attachment: {e}", 0))
                 elif op in (_OP_DATA_END, _OP_FOOTER):

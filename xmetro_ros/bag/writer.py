@@ -1,9 +1,11 @@
 """Write MCAP bags exactly as ``ros2 bag record -s mcap`` does, with the ``mcap`` library.
 
-Per file: header profile ``ros2``; one ``ros2msg`` schema per type (text with dependencies, see
-:mod:`.schema`); channels with encoding ``cdr`` and metadata ``offered_qos_profiles`` + ``topic_type_hash``;
-messages chunked (optionally zstd) and indexed; a ``rosbag2`` metadata record (``serialized_metadata``,
-``ROS_DISTRO``); summary with statistics. Output layouts:
+Per file, as rosbag2_storage_mcap writes it: header profile ``ros2``; one ``ros2msg`` schema per type (text with
+dependencies, see :mod:`.schema`); channels with encoding ``cdr`` and metadata ``offered_qos_profiles`` (the
+publishers' profiles, YAML, see :mod:`.qos`) + ``topic_type_hash`` (RIHS01); messages chunked (optionally zstd) and
+indexed; a ``rosbag2`` metadata record ``{serialized_metadata: <BagMetadata YAML>}`` when the file is opened and
+again when it is closed (``MCAPStorage::update_metadata``: the bare BagMetadata mapping, version 9, ``ros_distro``
+inside it); summary with statistics. Output layouts:
 
 - ``path`` ending in ``.mcap``: one bare MCAP file (no splitting).
 - any other ``path``: a rosbag2 directory ``path/`` holding ``<name>_0.mcap``, ``<name>_1.mcap``, ... and
@@ -27,10 +29,10 @@ import yaml
 from mcap.writer import CompressionType, Writer
 
 from .codec import serialize
-from .qos import offered_qos_yaml
+from .qos import offered_qos_list, offered_qos_yaml
 from .schema import full_type_name, schema_text, type_hash
 
-__all__ = ["ROS_DISTRO", "BagWriteError", "BagWriter", "rosbag2_metadata"]
+__all__ = ["ROS_DISTRO", "BagWriteError", "BagWriter", "rosbag2_metadata", "rosbag2_yaml"]
 
 ROS_DISTRO = "kilted"
 LIBRARY = "xmetro_ros bag writer (mcap python)"
@@ -77,9 +79,16 @@ class _SafeFile:
 class _Topic:
     name: str
     type_name: str
-    qos_yaml: str
+    qos: list[dict[str, Any]]  # offered profiles, rosbag2 v9 mappings
     type_hash: str
+    schema_data: bytes
+    schema_encoding: str = "ros2msg"
     count: int = 0
+
+    @property
+    def qos_yaml(self) -> str:
+        """The channel metadata string (``offered_qos_profiles``)."""
+        return offered_qos_yaml(self.qos)
 
 
 @dataclass
@@ -105,8 +114,32 @@ class _Open:
     sequence: Counter = field(default_factory=Counter)
 
 
+class _YamlCppStyle(yaml.SafeDumper):
+    """PyYAML emitting the way yaml-cpp (rosbag2) does: block sequences indented under their key, ``""`` for empty
+    strings. Only the look differs from PyYAML's default; the YAML is the same."""
+
+    def increase_indent(self, flow: bool = False, indentless: bool = False) -> Any:
+        return super().increase_indent(flow, False)
+
+    def ignore_aliases(self, data: Any) -> bool:
+        return True  # a mapping used twice is written twice (yaml-cpp writes no anchors)
+
+
+_YamlCppStyle.add_representer(
+    str, lambda d, v: d.represent_scalar("tag:yaml.org,2002:str", v, style='"' if v == "" else None))
+
+
+def rosbag2_yaml(data: Any) -> str:
+    """``data`` as YAML in rosbag2's (yaml-cpp's) block style, keys in the given order."""
+    return yaml.dump(data, Dumper=_YamlCppStyle, sort_keys=False, default_flow_style=False, allow_unicode=True)
+
+
 def rosbag2_metadata(topics: Iterable[Any], files: list[Any], compression: str | None) -> dict[str, Any]:
-    """The ``rosbag2_bagfile_information`` mapping (metadata.yaml, version 9) for the given topics and files."""
+    """``{rosbag2_bagfile_information: BagMetadata}`` (metadata.yaml, version 9) for the given topics and files.
+
+    Keys and their order as rosbag2_storage's ``convert<BagMetadata>::encode`` (yaml.hpp) writes them; topics'
+    ``offered_qos_profiles`` as a sequence (version 9).
+    """
     files = list(files)
     starts = [f.start_ns for f in files if f.start_ns is not None]
     ends = [f.end_ns for f in files if f.end_ns is not None]
@@ -125,7 +158,7 @@ def rosbag2_metadata(topics: Iterable[Any], files: list[Any], compression: str |
                         "name": t.name,
                         "type": t.type_name,
                         "serialization_format": "cdr",
-                        "offered_qos_profiles": t.qos_yaml,
+                        "offered_qos_profiles": list(t.qos),
                         "type_description_hash": t.type_hash,
                     },
                     "message_count": int(t.count),
@@ -234,6 +267,7 @@ class BagWriter:
         self._cur = _Open(stream, w, _FileStats(str(p)))
         self.files.append(self._cur.stats)
         self._guard("writing the header", lambda: w.start(profile="ros2", library=LIBRARY))
+        self._write_rosbag2_record(self._cur)  # rosbag2 writes one at open too: a killed file still says what it is
         for t in self.topics.values():
             self._register(t)
 
@@ -241,9 +275,8 @@ class BagWriter:
         cur = self._cur
         assert cur is not None
         if t.type_name not in cur.schema_ids:
-            data = schema_text(t.type_name).encode()
-            cur.schema_ids[t.type_name] = self._guard(
-                "writing a schema", lambda: cur.writer.register_schema(t.type_name, "ros2msg", data))
+            cur.schema_ids[t.type_name] = self._guard("writing a schema", lambda: cur.writer.register_schema(
+                t.type_name, t.schema_encoding, t.schema_data))
         cur.channel_ids[t.name] = self._guard("writing a channel", lambda: cur.writer.register_channel(
             t.name, "cdr", cur.schema_ids[t.type_name],
             {"offered_qos_profiles": t.qos_yaml, "topic_type_hash": t.type_hash}))
@@ -255,10 +288,7 @@ class BagWriter:
         self._cur = None
         try:
             if self._failed is None:
-                meta = rosbag2_metadata(self.topics.values(), [cur.stats], self.compression)
-                self._guard("writing the metadata record", lambda: cur.writer.add_metadata(
-                    "rosbag2", {"serialized_metadata": yaml.safe_dump(meta, sort_keys=False),
-                                "ROS_DISTRO": ROS_DISTRO}))
+                self._write_rosbag2_record(cur)
                 self._guard("writing the summary", cur.writer.finish)
         finally:
             try:
@@ -266,21 +296,37 @@ class BagWriter:
             except OSError:
                 pass
 
+    def _write_rosbag2_record(self, cur: _Open) -> None:
+        """The ``rosbag2`` metadata record of file ``cur``: ``serialized_metadata`` = the bare BagMetadata."""
+        meta = rosbag2_metadata(self.topics.values(), [cur.stats], self.compression)["rosbag2_bagfile_information"]
+        self._guard("writing the metadata record", lambda: cur.writer.add_metadata(
+            "rosbag2", {"serialized_metadata": rosbag2_yaml(meta)}))
+
     # -- public API ----------------------------------------------------------------------------------------
-    def add_topic(self, topic: str, type_name: str, qos: Iterable[Any] | str | None = None) -> None:
+    def add_topic(self, topic: str, type_name: str, qos: Iterable[Any] | str | None = None, *,
+                  schema: tuple[str, bytes] | None = None, topic_type_hash: str | None = None) -> None:
         """Declare ``topic`` of ``type_name`` (``pkg/msg/Type``) with its publishers' offered QoS profiles.
 
-        Raises UnknownTypeError (from :mod:`.schema`) when the type's .msg is not installed; ValueError when the
-        topic exists with another type.
+        Args:
+            qos: the offered profiles: rclpy QoSProfiles, rosbag2 mappings (:mod:`.qos_profiles`) or an
+                ``offered_qos_profiles`` string of any rosbag2 version; None = unknown (recorded as ``[]``).
+            schema: ``(encoding, data)`` to store instead of the installed ``.msg`` text (copying a bag whose types
+                are not installed here); then ``topic_type_hash`` is stored as given ("" when None).
+
+        Raises UnknownTypeError (from :mod:`.schema`) when the type's .msg is not installed and no ``schema`` is
+        given; ValueError when the topic exists with another type or ``qos`` is malformed.
         """
         self._check_open()
-        type_name = full_type_name(type_name)
+        type_name = full_type_name(type_name) if schema is None else type_name
         if topic in self.topics:
             if self.topics[topic].type_name != type_name:
                 raise ValueError(f"topic {topic} already added with type {self.topics[topic].type_name}")
             return
-        schema_text(type_name)  # fail early on an unknown type
-        t = _Topic(topic, type_name, offered_qos_yaml(qos), type_hash(type_name))
+        profiles = offered_qos_list(qos)
+        if schema is None:
+            t = _Topic(topic, type_name, profiles, type_hash(type_name), schema_text(type_name).encode())
+        else:
+            t = _Topic(topic, type_name, profiles, topic_type_hash or "", bytes(schema[1]), schema[0])
         self.topics[topic] = t
         self._register(t)
 
@@ -347,7 +393,7 @@ class BagWriter:
         self._finish_file()
         if not self.bare:
             meta = rosbag2_metadata(self.topics.values(), self.files, self.compression)
-            text = yaml.safe_dump(meta, sort_keys=False)
+            text = rosbag2_yaml(meta)
             try:
                 (self.path / "metadata.yaml").write_text(text)
             except OSError as e:

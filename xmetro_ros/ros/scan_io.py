@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from ..artifacts import artifact_from_dict
+from ..bag import qos_profiles
 from ..bag.reader import BagReader
 from ..bag.writer import BagWriter
 from ..geometry import HeadPose
@@ -95,8 +96,9 @@ def write_scans(
     scans = list(scans) if not isinstance(scans, list) else scans
     stamps = _stamps(scans)
     with BagWriter(path, compression=compression) as w:
-        w.add_topic(settings_topic, "xmetro_ros/msg/ScannerSettings")
-        w.add_topic(topic, "sensor_msgs/msg/PointCloud2")
+        # The QoS a live scanner would offer (settings transient-local), so `ros2 bag play` re-offers it.
+        w.add_topic(settings_topic, "xmetro_ros/msg/ScannerSettings", [qos_profiles.SETTINGS])
+        w.add_topic(topic, "sensor_msgs/msg/PointCloud2", [qos_profiles.CLOUD])
         if manifest is not None:
             w.add_metadata(MANIFEST_RECORD, {"json": json.dumps(manifest)})
         for i, (scan, stamp) in enumerate(zip(scans, stamps, strict=True)):
