@@ -366,10 +366,11 @@ class BagWriter:
             int(log_time_ns), int(log_time_ns), name, media_type, bytes(data)))
 
     def _maybe_split(self, nbytes: int, log_time_ns: int) -> None:
-        st = self._cur.stats if self._cur else None
-        if self.bare or st is None or st.count == 0:
+        cur = self._cur
+        st = cur.stats if cur else None
+        if self.bare or cur is None or st is None or st.count == 0:
             return
-        too_big = self.split_size is not None and self._cur.stream.tell() + nbytes > self.split_size
+        too_big = self.split_size is not None and cur.stream.tell() + nbytes > self.split_size
         too_long = self.split_duration_ns is not None and log_time_ns - (st.start_ns or 0) >= self.split_duration_ns
         if too_big or too_long:
             self._finish_file()

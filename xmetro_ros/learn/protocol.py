@@ -12,6 +12,7 @@ Metrics: MAE (mm) and R², per axis, mean ± std over the draws.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -42,7 +43,8 @@ def _clouds(cloud_id: np.ndarray) -> list[np.ndarray]:
 def study_split(cloud_id: np.ndarray, n_train: int = 100, n_test: int = 50, n_draws: int = 5, seed: int = 0) -> Split:
     """The study's split (see module doc). Raises ValueError naming a cloud with too few points."""
     rng = np.random.default_rng(seed)
-    train, draws = [], [[] for _ in range(n_draws)]
+    train: list[np.ndarray] = []
+    draws: list[list[np.ndarray]] = [[] for _ in range(n_draws)]
     for members in _clouds(cloud_id):
         if len(members) < n_train + n_test:
             raise ValueError(
@@ -75,7 +77,8 @@ def cloud_split(
         raise ValueError("the cloud split needs at least two configurations (or clouds)")
     n_out = min(len(groups) - 1, max(1, round(held_out_fraction * len(groups))))
     held = set(rng.choice(groups, n_out, replace=False).tolist())
-    train, draws = [], [[] for _ in range(n_draws)]
+    train: list[np.ndarray] = []
+    draws: list[list[np.ndarray]] = [[] for _ in range(n_draws)]
     for members in _clouds(cloud_id):
         if len(members) < max(n_train, n_test):
             raise ValueError(f"cloud {cloud_id[members[0]]!r} has only {len(members)} points")
@@ -109,7 +112,7 @@ def r2(y: np.ndarray, p: np.ndarray) -> float:
     return float(1.0 - np.sum((y - np.asarray(p, np.float64)) ** 2) / ss) if ss > 0 else float("nan")
 
 
-def summarize(values: list[float]) -> dict[str, float]:
+def summarize(values: list[float]) -> dict[str, Any]:
     """Mean, population std and the values themselves of the per-draw metrics."""
     v = np.asarray(values, np.float64)
     return {"mean": float(v.mean()), "std": float(v.std(ddof=0)), "draws": [float(x) for x in v]}
