@@ -144,7 +144,7 @@ def _pointnet_config(family: str, prof: Profile, threads: int, head: tuple[int, 
     if family == "pointnet_multi":
         c = dict(prof.compact)
         return PointNetConfig(block1=tuple(c["block1"]), block2=tuple(c["block2"]), head=tuple(head or c["head"]),
-                              epochs=epochs or c["epochs"], threads=threads)
+                              epochs=epochs or c["epochs"], threads=threads, sigma_head=True)
     return PointNetConfig(block1=STUDY_LAYOUT["block1"], block2=tuple(prof.pointnet_study_block2),
                           head=tuple(head or prof.pointnet_grid[0]), epochs=epochs or prof.pointnet_epochs,
                           threads=threads)
@@ -262,8 +262,13 @@ def _onnx_check(models: list[FittedModel], out: Path, card: dict, X: np.ndarray)
         sess = ort.InferenceSession(str(out / entry["file"]), providers=["CPUExecutionProvider"])
         if m.kind == "sets":
             idx, _ = partition_sets(len(X), card["set_size"], card["partition_seed"])
-            ref = m.estimator.predict_sets(X[idx])
-            got = sess.run(None, {"X": X[idx]})[0]
+            outs = sess.run(None, {"X": X[idx]})
+            if len(outs) > 1:  # spread head: σ checked too (ONNX log σ against the framework's)
+                ref, sig = m.estimator.predict_sets_sigma(X[idx])
+                worst = max(worst, float(np.max(np.abs(np.exp(outs[1].astype(np.float64)) - sig))))
+            else:
+                ref = m.estimator.predict_sets(X[idx])
+            got = outs[0]
         else:
             ref = m.predict(X)
             got = sess.run(None, {"X": X})[0]
