@@ -229,6 +229,9 @@ def export_model_set(
         Xt = np.asarray(X_train, np.float64)
         # Raw training min/max; consumers widen it by ``margin`` × range (the node's domain_margin parameter).
         card["domain"] = {"lo": Xt.min(0).tolist(), "hi": Xt.max(0).tolist(), "margin": DOMAIN_MARGIN}
+        from .uncertainty import fit_domain
+
+        card["domain_mv"] = fit_domain(Xt)  # the multivariate domain (ModelSet.domain_distance)
         rng = np.random.default_rng(0)
         card["background"] = Xt[rng.choice(len(Xt), min(16, len(Xt)), replace=False)].tolist()
     card.update(card_extra or {})
