@@ -11,9 +11,10 @@ per mm). Predictions are the systematic error nominal − measured, mm, in the s
 Uncertainty (:meth:`ModelSet.predict_with_uncertainty`): a PointNet member with a second ONNX output
 ``log_sigma`` gives σ̂ per point and axis (mm); a member without one counts as σ̂ = 1 mm (plain absolute-residual
 conformal). The card's ``uncertainty`` block (written by :func:`xmetro_ros.learn.uncertainty.calibrate`) holds the
-split-conformal multiplier per axis: U (95 %) = multiplier × (σ̂ + σ floor). The card's ``domain_mv`` block is the multivariate
-domain: the Mahalanobis distance of the standardized features from the training mean, with a threshold = a high
-quantile of the training points' distances; outside it U is widened by the factor distance / threshold (the
+split-conformal multiplier per axis: U (95 %) = multiplier × (σ̂ + σ floor). The card's ``domain_mv`` block is
+the multivariate domain: the Mahalanobis distance of the standardized features from the training mean, with a
+threshold = a high quantile of the training points' distances; outside it U is widened by the factor
+distance / threshold (the
 distance in units of the threshold: U grows linearly with how far the point is from what the model learned).
 """
 
@@ -324,8 +325,8 @@ class ModelSet:
     def predict_with_uncertainty(self, X: np.ndarray) -> UncertainPrediction:
         """Errors and their expanded uncertainty U (mm) for the feature rows X (M, F) of ONE cloud.
 
-        U = the card's conformal multiplier per axis × (σ̂ + its sigma_floor_mm), times max(1, domain distance) outside the multivariate
-        domain. Raises ModelLoadError when the model set has no calibration."""
+        U = the card's conformal multiplier per axis × (σ̂ + its sigma_floor_mm), times max(1, domain distance)
+        outside the multivariate domain. Raises ModelLoadError when the model set has no calibration."""
         if not self.calibrated:
             raise ModelLoadError(f"model set {self.id!r} has no uncertainty calibration (card 'uncertainty')")
         X = self._check_X(X)

@@ -139,7 +139,8 @@ def interval_metrics(errors: np.ndarray, U: np.ndarray, y: np.ndarray, oracle_st
                      bins: dict[str, tuple[np.ndarray, np.ndarray]] | None = None, z: float = 1.96) -> dict:
     """Per axis: coverage of errors ± U over the measured errors y, mean U, mean width (2U); with the oracle std:
     mean U / mean oracle half-width (z · std; the sharpness ratio) and the Spearman rank correlation of U with
-    the true std; points where the true std is 0 (no random error on that axis) are left out. ``bins``: name → (values (M,), edges): coverage per bin (conditional coverage)."""
+    the true std; points where the true std is 0 (no random error on that axis) are left out.
+    ``bins``: name → (values (M,), edges): coverage per bin (conditional coverage)."""
     err, U, y = (np.asarray(v, np.float64) for v in (errors, U, y))
     out: dict[str, Any] = {}
     for a, ax in enumerate(AXES):
