@@ -47,6 +47,7 @@ class FittedModel:
     params: dict = field(default_factory=dict)
     cv_mae: float | None = None
     fit_s: float = 0.0
+    spread: Any = None  # optional spread model (CatBoost RMSEWithUncertainty), framework only (not exported)
 
     @property
     def kind(self) -> str:
@@ -57,6 +58,25 @@ class FittedModel:
         if self.kind == "sets":
             return np.asarray(self.estimator.predict(X, groups), np.float64)
         return (np.asarray(self.estimator.predict(X), np.float64) / TARGET_SCALE).reshape(len(X), 1)
+
+    def predict_sigma(self, X: np.ndarray, groups: np.ndarray | None = None) -> np.ndarray:
+        """σ̂ (M, len(axes)) mm: the PointNet spread head (sets formed as in ``predict``), else the ``spread``
+        estimator set on the model (CatBoost RMSEWithUncertainty, see learn/study.py), else 1 (no spread model)."""
+        X = np.asarray(X, np.float32)
+        est = self.estimator
+        if self.kind == "sets" and getattr(est.module_, "head_sigma", None) is not None:
+            from .pointnet import sets_by_group
+
+            g = np.zeros(len(X), np.int64) if groups is None else np.asarray(groups)
+            idx, real = sets_by_group(g, est.config.set_size, 0)
+            _, sig = est.predict_sets_sigma(X[idx])
+            out = np.empty((len(X), sig.shape[-1]))
+            out[idx[real]] = sig[real]
+            return out
+        if self.spread is not None:  # CatBoost RMSEWithUncertainty: columns (mean, variance) in µm, µm²
+            var = np.asarray(self.spread.predict(X, prediction_type="RMSEWithUncertainty"))[:, 1]
+            return (np.sqrt(np.maximum(var, 0.0)) / TARGET_SCALE).reshape(len(X), 1)
+        return np.ones((len(X), len(self.axes)))
 
     def to_onnx(self, n_features: int):
         if self.kind == "sets":
