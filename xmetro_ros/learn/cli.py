@@ -33,6 +33,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e.add_argument("--from", dest="from_dir", default=None,
                    help=f"copy <DIR>/models/{DEFAULT_FAMILY} of a finished `xmetro train` run instead of training")
     e.add_argument("--out", default=None, help="target directory (default: the package's models/default)")
+    e.add_argument("--no-calibrate", action="store_true",
+                   help="skip the conformal calibration on fresh clouds (the card then has no 'uncertainty')")
     e.set_defaults(func=run_export_default)
 
 
@@ -63,6 +65,30 @@ def run_train(args: argparse.Namespace) -> int:
     return 0
 
 
+CALIBRATION_SEED_OFFSET = 1000  # calibration clouds: the profile's campaign simulated with seed + this
+
+
+def _calibrate_default(model_dir: Path, profile: str, seed: int) -> None:
+    """Split-conformal calibration of the default model set on clouds it never saw: the profile's campaign
+    simulated again with seed + CALIBRATION_SEED_OFFSET (same artifacts and settings, new clouds), 300 points per
+    cloud (learn/uncertainty.py)."""
+    from ..dataset import build_table
+    from ..features import STUDY_FEATURES
+    from ..sim.campaign import study_campaign
+    from .families import get_profile
+    from .uncertainty import calibrate
+
+    prof = get_profile(profile)
+    cal_seed = seed + CALIBRATION_SEED_OFFSET
+    items = study_campaign(seed=cal_seed, **dict(prof.campaign))
+    table = build_table([it.simulate() for it in items], list(STUDY_FEATURES), max_points_per_cloud=300,
+                        seed=cal_seed)
+    labels = [f"campaign seed {cal_seed} item {i}: {c['label']} {c['artifact']['kind']}"
+              for i, c in enumerate(table.clouds)]
+    block = calibrate(model_dir, table.X, table.y, table.cloud_id, cloud_labels=labels)
+    print(f"calibrated on {len(items)} clouds: multipliers {[round(k, 3) for k in block['multiplier']]}")
+
+
 def run_export_default(args: argparse.Namespace) -> int:
     from ..inference import ModelSet
     from ..resources import default_model_dir
@@ -77,6 +103,8 @@ def run_export_default(args: argparse.Namespace) -> int:
             table, manifest = load_data(args.profile, args.seed)
             run_study(table, manifest, args.profile, args.seed, tmp, families=(DEFAULT_FAMILY,))
             src = Path(tmp) / "models" / DEFAULT_FAMILY
+        if not args.no_calibrate:
+            _calibrate_default(src, args.profile, args.seed)
         ms = ModelSet.load(src)  # validates before replacing the shipped model
         if target.exists():
             shutil.rmtree(target)
