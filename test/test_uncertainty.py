@@ -125,3 +125,20 @@ def test_uncalibrated_model_set_refuses_uncertainty(tmp_path, trained):
     with pytest.raises(ModelLoadError, match="no uncertainty calibration"):
         ms.predict_with_uncertainty(trained["te"].X[:10])
     ms.predict(trained["te"].X[:10])  # predict works as before
+
+
+def test_card_without_multivariate_domain_falls_back_to_min_max(trained, tmp_path):
+    import shutil
+
+    d = tmp_path / "m"
+    shutil.copytree(trained["dir"], d)
+    card = json.loads((d / "card.json").read_text())
+    del card["domain_mv"]
+    (d / "card.json").write_text(json.dumps(card))
+    ms = ModelSet.load(d)
+    X = trained["te"].X[:500]
+    np.testing.assert_array_equal(ms.out_of_domain_mv(X), ms.out_of_domain(X))
+    assert np.isnan(ms.domain_distance(X)).all()
+    r = ms.predict_with_uncertainty(X)  # no widening without the domain
+    mult = np.asarray(card["uncertainty"]["multiplier"])
+    np.testing.assert_allclose(r.U, mult * (r.sigma + card["uncertainty"]["sigma_floor_mm"]))
