@@ -142,3 +142,18 @@ def test_card_without_multivariate_domain_falls_back_to_min_max(trained, tmp_pat
     r = ms.predict_with_uncertainty(X)  # no widening without the domain
     mult = np.asarray(card["uncertainty"]["multiplier"])
     np.testing.assert_allclose(r.U, mult * (r.sigma + card["uncertainty"]["sigma_floor_mm"]))
+
+
+def test_shipped_default_intervals_on_new_seeds_and_artifacts():
+    """The packaged default (full profile, calibrated on campaign seed 1000) on a Ø40 sphere and an r 15 mm
+    cylinder simulated with seed 3: the same acceptance bounds (docs/learning.md table)."""
+    from xmetro_ros.learn.uncertainty_eval import evaluate_shipped
+
+    r = evaluate_shipped()
+    u = r["calibration"]
+    assert "crepes" in u["method"] and len(u["calibration_clouds"]) == 108
+    for ax, m in r["metrics"].items():
+        assert 0.94 <= m["coverage"] <= 0.96, (ax, m["coverage"])
+        assert m["sharpness_ratio"] <= 1.3 and m["spearman_U_true_std"] >= 0.7, (ax, m)
+        for name, rows in m["bins"].items():
+            assert all(b["coverage"] >= 0.90 for b in rows if b["n"] >= 200), (ax, name, rows)
