@@ -39,7 +39,7 @@ def _record(path: Path, scanner: ScannerModel, n: int, seed: int) -> list:
             b = simulate_scan(Sphere(RADIUS, CENTRES["ball_b"]), s, scanner=scanner, seed=seed + 2 * k + 1)
             stamp = (k + 1) * 10**9
             scan = replace(a, points=np.concatenate([a.points.reshape(-1, 3), b.points.reshape(-1, 3)]), fields={},
-                           artifact=None, expected_error=None, stamp_ns=stamp)
+                           artifact=None, expected_error=None, noise_std=None, injected_outlier=None, stamp_ns=stamp)
             w.write("/scanner_settings", settings_to_msg(s, a.pose, scan.frame_id, stamp - 1000, scanner.id),
                     stamp - 1000)
             w.write("/scan", scan_to_cloud(scan, stamp), stamp)

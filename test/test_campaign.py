@@ -38,8 +38,8 @@ def _scans(scanner: ScannerModel, n: int = 2, seed: int = 0) -> list:
         a = simulate_scan(Sphere(RADIUS, CENTRES["ball_a"]), s, scanner=scanner, seed=seed + 2 * k)
         b = simulate_scan(Sphere(RADIUS, CENTRES["ball_b"]), s, scanner=scanner, seed=seed + 2 * k + 1)
         pts = np.concatenate([a.points.reshape(-1, 3), b.points.reshape(-1, 3)])
-        out.append(replace(a, points=pts, artifact=None, expected_error=None, fields={},
-                           stamp_ns=(k + 1) * 10**9, meta={}))
+        out.append(replace(a, points=pts, artifact=None, expected_error=None, noise_std=None, injected_outlier=None,
+                           fields={}, stamp_ns=(k + 1) * 10**9, meta={}))
     return out
 
 

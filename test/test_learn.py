@@ -214,7 +214,7 @@ def test_train_cli_micro(tmp_path):
     from xmetro_ros.apps.cli import main
 
     out = tmp_path / "run"
-    assert main(["train", "--profile", "micro", "--out", str(out), "--families", "dt,pointnet_multi"]) == 0
+    assert main(["train", "--profile", "micro", "--out", str(out), "--families", "dt,catboost,pointnet_multi"]) == 0
     m = json.loads((out / "metrics.json").read_text())
     assert m["schema"] == "xmetro-metrics/1" and m["seed"] == 0 and m["manifest"]["source"] == "simulated"
     for split in ("point", "cloud"):
@@ -225,6 +225,13 @@ def test_train_cli_micro(tmp_path):
                 v = s["models"][fam][ax]
                 assert len(v["mae"]["draws"]) == MICRO.n_test_draws and v["ratio_to_oracle"] > 0.5
     assert "Table 3" in (out / "tables.md").read_text()
+    # Calibrated intervals per family on the held-out clouds (few clouds in micro: loose bounds).
+    iv = m["intervals"]
+    assert iv["n_clouds"] >= 2 and "Calibrated 95 % intervals" in (out / "tables.md").read_text()
+    for fam in ("dt", "catboost", "pointnet_multi"):
+        for ax in "xyz":
+            v = iv["families"][fam][ax]
+            assert 0.8 <= v["coverage"] <= 1.0 and 0.002 < v["mean_width_mm"] < 0.2, (fam, ax, v)
     assert (out / "deviation_z.png").stat().st_size > 1000 and (out / "shap_pointnet_multi_x.png").exists()
     assert ModelSet.load(out / "models" / "pointnet_multi").card["set_size"] == 50
     assert main(["train", "--profile", "micro", "--out", str(out), "--families", "nope"]) == 2

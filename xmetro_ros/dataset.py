@@ -3,7 +3,9 @@
 ``build_table`` prepares each scan once (outlier removal, normals), samples at most ``max_points_per_cloud`` of its
 kept points (seeded), and computes for those only: features, targets (nominal − measured, from the PREPARED points
 against the scan's artifact: radial on spheres, axial on cylinders), the oracle (the simulator's noise-free
-``expected_error`` at those points, NaN when the scan has none) and the cloud id.
+``expected_error`` at those points, NaN when the scan has none), the oracle noise std (the simulator's
+``noise_std``: with the oracle, the oracle 95 % interval oracle ± 1.96·oracle_std; NaN when unknown and at the
+spurious returns the simulator injected) and the cloud id.
 
 ``study_split`` is the study's protocol: per cloud, 100 random training points and five test draws of 50 points,
 each draw without replacement and disjoint from the training points (seeded). ``cloud_split`` leaves whole clouds
@@ -43,6 +45,8 @@ class Table:
         feature_names: list of F names.
         point_index: (M,) flat index of the point in its scan's grid / list.
         clouds: one dict per scan: label, settings, artifact, n_valid, n_kept, n_outliers, meta subset.
+        oracle_std: (M, 3) float64 true std of the random part of the error at the point, mm; NaN where unknown
+            or the point is an injected outlier (None: a table built without it).
     """
 
     X: np.ndarray
@@ -52,6 +56,7 @@ class Table:
     feature_names: list[str]
     point_index: np.ndarray
     clouds: list[dict[str, Any]] = field(default_factory=list)
+    oracle_std: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.X)
@@ -59,7 +64,8 @@ class Table:
     def rows(self, idx: np.ndarray) -> Table:
         """The table restricted to rows ``idx``."""
         return Table(self.X[idx], self.y[idx], self.cloud_id[idx], self.oracle[idx], list(self.feature_names),
-                     self.point_index[idx], self.clouds)
+                     self.point_index[idx], self.clouds,
+                     None if self.oracle_std is None else self.oracle_std[idx])
 
 
 @dataclass
@@ -144,7 +150,7 @@ def build_table(scans: Sequence[Scan], feature_names: Sequence[str], preprocess_
     cfg = preprocess_cfg or PreprocessConfig()
     scanner = scanner or ScannerModel.load()
     rng = np.random.default_rng(seed)
-    xs, ys, cids, oracles, pidx, clouds = [], [], [], [], [], []
+    xs, ys, cids, oracles, stds, pidx, clouds = [], [], [], [], [], [], []
     for k, scan in enumerate(scans):
         if scan.artifact is None:
             raise DatasetError(f"scan {k} has no artifact: targets need the nominal shape")
@@ -159,6 +165,12 @@ def build_table(scans: Sequence[Scan], feature_names: Sequence[str], preprocess_
             oracle = np.asarray(scan.expected_error, dtype=np.float64).reshape(-1, 3)[prep.index]
         else:
             oracle = np.full((len(prep), 3), np.nan)
+        std = np.full((len(prep), 3), np.nan)
+        if scan.noise_std is not None:
+            std = np.asarray(scan.noise_std, dtype=np.float64).reshape(-1, 3)[prep.index]
+            if scan.injected_outlier is not None:
+                std[np.asarray(scan.injected_outlier).reshape(-1)[prep.index]] = np.nan
+        stds.append(std)
         xs.append(X)
         ys.append(y)
         oracles.append(oracle)
@@ -185,4 +197,5 @@ def build_table(scans: Sequence[Scan], feature_names: Sequence[str], preprocess_
         feature_names=names,
         point_index=np.concatenate(pidx),
         clouds=clouds,
+        oracle_std=np.concatenate(stds),
     )

@@ -32,6 +32,9 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = [
+    "CONFORMING",
+    "DECISION_NAMES",
+    "DECISION_RULES",
     "FLAG_BITS",
     "FLAG_GRAZING_INCIDENCE",
     "FLAG_GRAZING_VIEW",
@@ -41,6 +44,8 @@ __all__ = [
     "FLAG_OUT_OF_DOMAIN",
     "FLAG_OVER_TOLERANCE",
     "FLAG_UNRELIABLE_NORMAL",
+    "NON_CONFORMING",
+    "UNDECIDED",
     "VERDICT_ERROR",
     "VERDICT_NAMES",
     "VERDICT_OK",
@@ -48,6 +53,7 @@ __all__ = [
     "VERDICT_WARN",
     "VerdictThresholds",
     "angle_flags",
+    "decision_classes",
     "domain_flags",
     "flag_counts",
     "verdict",
@@ -68,6 +74,11 @@ FLAG_NAMES = ("outlier", "grazing_incidence", "grazing_view", "over_tolerance", 
               "unreliable_normal", "invalid_point")
 
 VERDICT_OK, VERDICT_WARN, VERDICT_RESCAN, VERDICT_ERROR = 0, 1, 2, 3
+
+# ISO 14253-1 decision classes of a point (see decision_classes).
+CONFORMING, NON_CONFORMING, UNDECIDED = 0, 1, 2
+DECISION_NAMES = ("conforming", "non_conforming", "undecided")
+DECISION_RULES = ("guard_banded", "simple")
 VERDICT_NAMES = ("OK", "WARN", "RESCAN", "ERROR")
 
 
@@ -128,6 +139,43 @@ def domain_flags(X: np.ndarray, lo: np.ndarray, hi: np.ndarray, margin: float) -
         out[(m.view(np.uint8) @ np.ones(m.shape[1], np.uint8)) > 0] = FLAG_OUT_OF_DOMAIN
     else:
         out[m.any(axis=1)] = FLAG_OUT_OF_DOMAIN
+    return out
+
+
+def decision_classes(d: np.ndarray, U: np.ndarray, tol: float | np.ndarray, rule: str = "guard_banded"
+                     ) -> np.ndarray:
+    """ISO 14253-1 decision per point (uint8: CONFORMING 0, NON_CONFORMING 1, UNDECIDED 2).
+
+    Args:
+        d: predicted error per point, mm, (M,) or (M, A) (per axis; the caller picks what it judges: an axis, or
+            the norm over the axes with its U).
+        U: expanded uncertainty (95 %) of ``d``, mm, same shape (>= 0; NaN → UNDECIDED under "guard_banded").
+        tol: tolerance on the measurement error, mm (> 0), scalar or broadcastable to ``d``.
+        rule: "guard_banded" (ISO 14253-1 default: conformance proved only when |d| + U <= tol, non-conformance
+            only when |d| − U > tol, undecided in between), or "simple" (simple acceptance, ILAC-G8 / ISO 14253-5
+            "shared risk": |d| <= tol conforming, else non-conforming; U not used).
+
+    A non-finite ``d`` is UNDECIDED under both rules (nothing can be proved about it).
+    """
+    d = np.abs(np.asarray(d, dtype=np.float64))
+    tol_a = np.asarray(tol, dtype=np.float64)
+    if np.any(~(tol_a > 0)):
+        raise ValueError(f"tolerance must be > 0, got {tol!r}")
+    out = np.full(d.shape, UNDECIDED, dtype=np.uint8)
+    if rule == "simple":
+        ok = np.isfinite(d)
+        out[ok & (d <= tol_a)] = CONFORMING
+        out[ok & (d > tol_a)] = NON_CONFORMING
+        return out
+    if rule != "guard_banded":
+        raise ValueError(f"unknown decision rule {rule!r} (known: {', '.join(DECISION_RULES)})")
+    U = np.asarray(U, dtype=np.float64)
+    if np.any(U < 0):
+        raise ValueError("U must be >= 0")
+    U = np.broadcast_to(U, d.shape)
+    # NaN compares False: a point without a finite d or U stays UNDECIDED.
+    out[d + U <= tol_a] = CONFORMING
+    out[d - U > tol_a] = NON_CONFORMING
     return out
 
 

@@ -34,6 +34,10 @@ class Scan:
         artifact: the nominal artifact, when known (simulated or calibrated scans).
         expected_error: noise-free systematic error nominal − measured per axis, mm, shape of ``points``
             (simulated scans only); the oracle floor of every model.
+        noise_std: std of the random part of the error nominal − measured per axis, mm, shape of ``points``
+            (simulated scans only): with ``expected_error`` the oracle interval expected ± 1.96·noise_std.
+        injected_outlier: bool, shape of ``points[..., 0]``: spurious returns the simulator injected (their error
+            is not described by ``noise_std``); simulated scans only.
         meta: free-form provenance (seed, effects, configuration index, ...), JSON-serialisable.
     """
 
@@ -47,6 +51,8 @@ class Scan:
     artifact: Artifact | None = None
     expected_error: np.ndarray | None = None
     meta: dict[str, Any] = field(default_factory=dict)
+    noise_std: np.ndarray | None = None
+    injected_outlier: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         p = np.asarray(self.points)
@@ -57,6 +63,10 @@ class Scan:
                 raise ValueError(f"field {name!r} has shape {np.shape(arr)}, expected {p.shape[:-1]}")
         if self.expected_error is not None and np.shape(self.expected_error) != p.shape:
             raise ValueError("expected_error must have the shape of points")
+        if self.noise_std is not None and np.shape(self.noise_std) != p.shape:
+            raise ValueError("noise_std must have the shape of points")
+        if self.injected_outlier is not None and np.shape(self.injected_outlier) != p.shape[:-1]:
+            raise ValueError("injected_outlier must have the shape of points[..., 0]")
 
     @property
     def organized(self) -> bool:

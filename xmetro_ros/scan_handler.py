@@ -131,7 +131,9 @@ def cap_points(scan: Scan, max_points: int, overflow: str) -> tuple[Scan, np.nda
     pts = np.asarray(scan.points).reshape(-1, 3)[keep]
     fields = {k: np.asarray(v).reshape(-1)[keep] for k, v in scan.fields.items()}
     exp = None if scan.expected_error is None else np.asarray(scan.expected_error).reshape(-1, 3)[keep]
-    return replace(scan, points=pts, fields=fields, expected_error=exp), keep
+    std = None if scan.noise_std is None else np.asarray(scan.noise_std).reshape(-1, 3)[keep]
+    inj = None if scan.injected_outlier is None else np.asarray(scan.injected_outlier).reshape(-1)[keep]
+    return replace(scan, points=pts, fields=fields, expected_error=exp, noise_std=std, injected_outlier=inj), keep
 
 
 class ScanHandler:

@@ -38,6 +38,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     dest.add_argument("--out", default=None, help="target directory")
     dest.add_argument("--replace-packaged", action="store_true",
                       help="replace the model shipped in the package (models/default): never done without it")
+    e.add_argument("--no-calibrate", action="store_true",
+                   help="skip the conformal calibration on fresh clouds (the card then has no 'uncertainty')")
     e.set_defaults(func=run_export_default)
 
 
@@ -70,6 +72,30 @@ def run_train(args: argparse.Namespace) -> int:
     return 0
 
 
+CALIBRATION_SEED_OFFSET = 1000  # calibration clouds: the profile's campaign simulated with seed + this
+
+
+def _calibrate_default(model_dir: Path, profile: str, seed: int) -> None:
+    """Split-conformal calibration of the default model set on clouds it never saw: the profile's campaign
+    simulated again with seed + CALIBRATION_SEED_OFFSET (same artifacts and settings, new clouds), 300 points per
+    cloud (learn/uncertainty.py)."""
+    from ..dataset import build_table
+    from ..features import STUDY_FEATURES
+    from ..learn.families import get_profile
+    from ..learn.uncertainty import calibrate
+    from ..sim.campaign import study_campaign
+
+    prof = get_profile(profile)
+    cal_seed = seed + CALIBRATION_SEED_OFFSET
+    items = study_campaign(seed=cal_seed, **dict(prof.campaign))
+    table = build_table([it.simulate() for it in items], list(STUDY_FEATURES), max_points_per_cloud=300,
+                        seed=cal_seed)
+    labels = [f"campaign seed {cal_seed} item {i}: {c['label']} {c['artifact']['kind']}"
+              for i, c in enumerate(table.clouds)]
+    block = calibrate(model_dir, table.X, table.y, table.cloud_id, cloud_labels=labels)
+    print(f"calibrated on {len(items)} clouds: multipliers {[round(k, 3) for k in block['multiplier']]}")
+
+
 def run_export_default(args: argparse.Namespace) -> int:
     """``xmetro export-default``: train (or copy) a model set, check it loads, install it; exit code."""
     from ..inference import ModelSet
@@ -86,6 +112,11 @@ def run_export_default(args: argparse.Namespace) -> int:
             run_study(table, manifest, args.profile, args.seed, tmp, families=(DEFAULT_FAMILY,),
                       card_extra={"scanner": _scanner_card()})
             src = Path(tmp) / "models" / DEFAULT_FAMILY
+        staged = Path(tmp) / "staged"
+        shutil.copytree(src, staged)  # calibration writes the card: never into the --from directory
+        src = staged
+        if not args.no_calibrate:
+            _calibrate_default(src, args.profile, args.seed)
         ms = ModelSet.load(src)  # validates before replacing the shipped model
         if target.exists():
             shutil.rmtree(target)

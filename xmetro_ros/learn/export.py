@@ -3,7 +3,8 @@
 Every exported graph maps raw features (study units, float32) to errors in **mm**:
 * point-wise families (DT, SVR, MLP via skl2onnx; CatBoost via its own exporter): input ``X`` (N, F) → output
   ``y`` (N, 1); the µm → mm factor is appended to the graph.
-* PointNet: input ``X`` (B, n, F) sets → output ``y`` (B, n, A); how sets are formed is in the card.
+* PointNet: input ``X`` (B, n, F) sets → output ``y`` (B, n, A); how sets are formed is in the card. With the
+  spread head (``pointnet_multi``) a second output ``log_sigma`` (B, n, A): log of the predicted σ in mm.
 
 The card (``card.json``) is also embedded in every ONNX file as metadata (``metadata_props['xmetro_card']``).
 """
@@ -82,8 +83,11 @@ def export_pointnet(module: Any, n_features: int) -> onnx.ModelProto:
     module = module.eval()
     buf = io.BytesIO()
     dummy = torch.zeros(2, 8, n_features)
-    torch.onnx.export(module, (dummy,), buf, input_names=["X"], output_names=["y"], opset_version=17,
-                      dynamic_axes={"X": {0: "sets", 1: "points"}, "y": {0: "sets", 1: "points"}}, dynamo=False)
+    # With the spread head a second output ``log_sigma`` (B, n, A), log of σ in mm; ``y`` stays the first output.
+    outs = ["y", "log_sigma"] if getattr(module, "head_sigma", None) is not None else ["y"]
+    torch.onnx.export(module, (dummy,), buf, input_names=["X"], output_names=outs, opset_version=17,
+                      dynamic_axes={"X": {0: "sets", 1: "points"}, **{o: {0: "sets", 1: "points"} for o in outs}},
+                      dynamo=False)
     model = onnx.load_from_string(buf.getvalue())
     onnx.checker.check_model(model)
     return model

@@ -5,6 +5,13 @@ max-pool over the set → global feature, repeated for every point and concatena
 MLP (the "head") → linear output, one column per target axis. Loss: MAE; Adam with an adaptive learning rate
 (ReduceLROnPlateau). The study layout is block1 (64, 64), block2 (64, 128, 1024), head of a 1088-wide input.
 
+Spread head (``sigma_head=True``, the default family ``pointnet_multi``): a second MLP of the head's shape on the
+same hidden layer outputs log σ per axis (σ in mm: the spread of the measured error around the prediction). Its
+loss is the Gaussian negative log-likelihood of the *detached* residual, log σ + r² / (2σ²), added to the MAE: the
+error head keeps the study's L1 objective (its gradient is not reweighted by σ, the failure mode of a joint NLL
+fit), and σ learns E[r² | point] — the scale that split-conformal calibration then turns into a 95 % interval
+(:mod:`xmetro_ros.learn.uncertainty`). Exported as the ONNX output ``log_sigma`` next to ``y``.
+
 Input normalisation (feature mean/std) and the target scale are buffers inside the module, so the exported ONNX
 graph maps raw features (study units) to errors in mm.
 
@@ -49,6 +56,7 @@ class PointNetReg(nn.Module):
         block2: Sequence[int] = (64, 128, 1024),
         head: Sequence[int] = (512, 256, 128),
         n_out: int = 1,
+        sigma_head: bool = False,
     ) -> None:
         super().__init__()
         if not head:
@@ -60,16 +68,21 @@ class PointNetReg(nn.Module):
         self.head_local = nn.Linear(block1[-1], head[0])
         self.head_global = nn.Linear(block2[-1], head[0], bias=False)
         self.head = _mlp([head[0], *head[1:], n_out], final_relu=False)
+        self.head_sigma = _mlp([head[0], *head[1:], n_out], final_relu=False) if sigma_head else None
         self.register_buffer("x_mean", torch.zeros(n_features))
         self.register_buffer("x_std", torch.ones(n_features))
         self.register_buffer("y_scale", torch.ones(n_out))
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+        """(B, n, F) → y (B, n, A) mm; with the spread head also log σ (B, n, A), σ in mm."""
         z = (x - self.x_mean) / self.x_std
         f1 = self.block1(z)
         g = self.block2(f1).amax(dim=1, keepdim=True)  # (B, 1, G): global feature of each set
         h = torch.relu(self.head_local(f1) + self.head_global(g))
-        return self.head(h) * self.y_scale
+        y = self.head(h) * self.y_scale
+        if self.head_sigma is None:
+            return y
+        return y, self.head_sigma(h) + torch.log(self.y_scale)
 
 
 STUDY_LAYOUT = {"block1": (64, 64), "block2": (64, 128, 1024), "head": (512, 256, 128)}
@@ -106,6 +119,7 @@ class PointNetConfig:
     weight_decay: float = 0.0
     patience: int = 8  # epochs without improvement before the learning rate is halved (adaptive rate)
     threads: int = 1  # torch threads: on a shared 2-core machine 2 threads were 10x slower than 1
+    sigma_head: bool = False  # second head: log σ per axis (Gaussian NLL of the detached residual)
     extra: dict = field(default_factory=dict)
 
 
@@ -123,7 +137,7 @@ class PointNetRegressor:
     def get_params(self) -> dict:
         c = self.config
         return {"block1": list(c.block1), "block2": list(c.block2), "head": list(c.head), "set_size": c.set_size,
-                "epochs": c.epochs, "lr": c.lr}
+                "epochs": c.epochs, "lr": c.lr, "sigma_head": c.sigma_head}
 
     def fit(self, X: np.ndarray, y: np.ndarray, groups: np.ndarray) -> PointNetRegressor:
         """X (M, F) raw features, y (M,) or (M, A) mm, groups (M,) cloud ids (sets never mix clouds)."""
@@ -137,7 +151,7 @@ class PointNetRegressor:
         prev_threads = torch.get_num_threads()
         torch.set_num_threads(max(1, c.threads))
         try:
-            net = PointNetReg(X.shape[1], c.block1, c.block2, c.head, n_out=y2.shape[1])
+            net = PointNetReg(X.shape[1], c.block1, c.block2, c.head, n_out=y2.shape[1], sigma_head=c.sigma_head)
             std = X.std(0)
             net.x_mean.copy_(torch.from_numpy(X.mean(0)))
             net.x_std.copy_(torch.from_numpy(np.where(std > 1e-12, std, 1.0).astype(np.float32)))
@@ -155,9 +169,16 @@ class PointNetRegressor:
                 for start in range(0, len(order), c.batch_sets):
                     b = order[start : start + c.batch_sets]
                     bi, br = torch.from_numpy(idx[b]), torch.from_numpy(real[b]).float().unsqueeze(-1)
-                    pred = net(Xt[bi])
+                    out = net(Xt[bi])
+                    pred = out[0] if c.sigma_head else out
                     err = (pred - yt[bi]).abs() / net.y_scale * br
                     loss = err.sum() / (br.sum() * y2.shape[1])
+                    if c.sigma_head:
+                        # Gaussian NLL of the detached residual, in target-scale units (log σ − log y_scale).
+                        ls = out[1] - torch.log(net.y_scale)
+                        r = (pred.detach() - yt[bi]) / net.y_scale
+                        nll = (ls + 0.5 * r**2 * torch.exp(-2 * ls)) * br
+                        loss = loss + nll.sum() / (br.sum() * y2.shape[1])
                     opt.zero_grad()
                     loss.backward()
                     opt.step()
@@ -181,7 +202,16 @@ class PointNetRegressor:
         if self.module_ is None:
             raise RuntimeError("PointNetRegressor is not fitted")
         with torch.no_grad():
-            return self.module_(torch.from_numpy(np.asarray(Xs, np.float32))).numpy()
+            out = self.module_(torch.from_numpy(np.asarray(Xs, np.float32)))
+        return (out[0] if isinstance(out, tuple) else out).numpy()
+
+    def predict_sets_sigma(self, Xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(K, n, F) sets → (y (K, n, A) mm, σ (K, n, A) mm) float32; needs the spread head."""
+        if self.module_ is None or self.module_.head_sigma is None:
+            raise RuntimeError("PointNetRegressor has no fitted spread head (sigma_head=False)")
+        with torch.no_grad():
+            y, ls = self.module_(torch.from_numpy(np.asarray(Xs, np.float32)))
+        return y.numpy(), np.exp(ls.numpy())
 
     def predict(self, X: np.ndarray, groups: np.ndarray | None = None, seed: int = 0) -> np.ndarray:
         """Per-point predictions (M, A) mm; sets formed within each group by a seeded partition (see module doc)."""

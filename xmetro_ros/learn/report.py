@@ -38,6 +38,17 @@ def tables_markdown(metrics: dict) -> str:
             lines.append(f"| *oracle floor* (simulator's expected error) | {_fmt(o['mae']) if o else 'n/a'} | "
                          f"{_fmt(o['r2'], 2) if o else 'n/a'} | 1.00 |")
             lines.append("")
+    iv = metrics.get("intervals") or {}
+    if iv.get("families"):
+        lines += ["## Calibrated 95 % intervals (cloud split, held-out configurations)", "", iv["description"], "",
+                  f"{iv['n_clouds']} clouds, {iv['n_points']} points.", "",
+                  "| Model | " + " | ".join(f"{ax.upper()} coverage | {ax.upper()} mean width (µm)" for ax in "xyz")
+                  + " |", "|---|" + "---|---|" * 3]
+        for fam, per_axis in iv["families"].items():
+            cells = [f"{100 * per_axis[ax]['coverage']:.1f} % | {1e3 * per_axis[ax]['mean_width_mm']:.1f}"
+                     for ax in "xyz"]
+            lines.append(f"| {DISPLAY.get(fam, fam)} | " + " | ".join(cells) + " |")
+        lines.append("")
     return "\n".join(lines)
 
 

@@ -47,6 +47,7 @@ class FittedModel:
     params: dict = field(default_factory=dict)
     cv_mae: float | None = None
     fit_s: float = 0.0
+    spread: Any = None  # optional spread model (CatBoost RMSEWithUncertainty), framework only (not exported)
 
     @property
     def kind(self) -> str:
@@ -57,6 +58,25 @@ class FittedModel:
         if self.kind == "sets":
             return np.asarray(self.estimator.predict(X, groups), np.float64)
         return (np.asarray(self.estimator.predict(X), np.float64) / TARGET_SCALE).reshape(len(X), 1)
+
+    def predict_sigma(self, X: np.ndarray, groups: np.ndarray | None = None) -> np.ndarray:
+        """σ̂ (M, len(axes)) mm: the PointNet spread head (sets formed as in ``predict``), else the ``spread``
+        estimator set on the model (CatBoost RMSEWithUncertainty, see learn/study.py), else 1 (no spread model)."""
+        X = np.asarray(X, np.float32)
+        est = self.estimator
+        if self.kind == "sets" and getattr(est.module_, "head_sigma", None) is not None:
+            from .pointnet import sets_by_group
+
+            g = np.zeros(len(X), np.int64) if groups is None else np.asarray(groups)
+            idx, real = sets_by_group(g, est.config.set_size, 0)
+            _, sig = est.predict_sets_sigma(X[idx])
+            out = np.empty((len(X), sig.shape[-1]))
+            out[idx[real]] = sig[real]
+            return out
+        if self.spread is not None:  # CatBoost RMSEWithUncertainty: columns (mean, variance) in µm, µm²
+            var = np.asarray(self.spread.predict(X, prediction_type="RMSEWithUncertainty"))[:, 1]
+            return (np.sqrt(np.maximum(var, 0.0)) / TARGET_SCALE).reshape(len(X), 1)
+        return np.ones((len(X), len(self.axes)))
 
     def to_onnx(self, n_features: int):
         if self.kind == "sets":
@@ -144,7 +164,7 @@ def _pointnet_config(family: str, prof: Profile, threads: int, head: tuple[int, 
     if family == "pointnet_multi":
         c = dict(prof.compact)
         return PointNetConfig(block1=tuple(c["block1"]), block2=tuple(c["block2"]), head=tuple(head or c["head"]),
-                              epochs=epochs or c["epochs"], threads=threads)
+                              epochs=epochs or c["epochs"], threads=threads, sigma_head=True)
     return PointNetConfig(block1=STUDY_LAYOUT["block1"], block2=tuple(prof.pointnet_study_block2),
                           head=tuple(head or prof.pointnet_grid[0]), epochs=epochs or prof.pointnet_epochs,
                           threads=threads)
@@ -229,6 +249,9 @@ def export_model_set(
         Xt = np.asarray(X_train, np.float64)
         # Raw training min/max; consumers widen it by ``margin`` × range (the node's domain_margin parameter).
         card["domain"] = {"lo": Xt.min(0).tolist(), "hi": Xt.max(0).tolist(), "margin": DOMAIN_MARGIN}
+        from .uncertainty import fit_domain
+
+        card["domain_mv"] = fit_domain(Xt)  # the multivariate domain (ModelSet.domain_distance)
         rng = np.random.default_rng(0)
         card["background"] = Xt[rng.choice(len(Xt), min(16, len(Xt)), replace=False)].tolist()
     card.update(card_extra or {})
@@ -262,8 +285,13 @@ def _onnx_check(models: list[FittedModel], out: Path, card: dict, X: np.ndarray)
         sess = ort.InferenceSession(str(out / entry["file"]), providers=["CPUExecutionProvider"])
         if m.kind == "sets":
             idx, _ = partition_sets(len(X), card["set_size"], card["partition_seed"])
-            ref = m.estimator.predict_sets(X[idx])
-            got = sess.run(None, {"X": X[idx]})[0]
+            outs = sess.run(None, {"X": X[idx]})
+            if len(outs) > 1:  # spread head: σ checked too (ONNX log σ against the framework's)
+                ref, sig = m.estimator.predict_sets_sigma(X[idx])
+                worst = max(worst, float(np.max(np.abs(np.exp(outs[1].astype(np.float64)) - sig))))
+            else:
+                ref = m.estimator.predict_sets(X[idx])
+            got = outs[0]
         else:
             ref = m.predict(X)
             got = sess.run(None, {"X": X})[0]

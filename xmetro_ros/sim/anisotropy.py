@@ -47,3 +47,4 @@ class Anisotropy(Effect):
         ctx.add_sys(self.name, sys[:, None] * lat)
         sigma = p["quantization"] / ctx.settings.lateral_density / np.sqrt(12.0)
         ctx.add_rand(self.name, (sigma * rng.standard_normal(ctx.m))[:, None] * lat)
+        ctx.add_noise_cov(sigma, lat)

@@ -66,6 +66,7 @@ class SimContext:
     intensity: np.ndarray = field(default=None)  # (M,) 0..1
     contributions: dict[str, np.ndarray] = field(default_factory=dict)  # name → (M, 3) systematic part
     noise_contributions: dict[str, np.ndarray] = field(default_factory=dict)  # name → (M, 3) random part
+    rand_cov: np.ndarray = field(default=None)  # (M, 3, 3) covariance of the Gaussian random displacement, mm²
     stats: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -73,6 +74,7 @@ class SimContext:
         self.keep = np.ones(m, bool) if self.keep is None else self.keep
         self.sys = np.zeros((m, 3)) if self.sys is None else self.sys
         self.rand = np.zeros((m, 3)) if self.rand is None else self.rand
+        self.rand_cov = np.zeros((m, 3, 3)) if self.rand_cov is None else self.rand_cov
         self.snr_gain = np.ones(m) if self.snr_gain is None else self.snr_gain
         self.noise_gain = np.ones(m) if self.noise_gain is None else self.noise_gain
         if self.intensity is None:
@@ -113,6 +115,14 @@ class SimContext:
     def add_rand(self, name: str, disp: np.ndarray) -> None:
         self.rand += disp
         self.noise_contributions[name] = self.noise_contributions.get(name, 0) + disp
+
+    def add_noise_cov(self, sigma: np.ndarray | float, direction: np.ndarray) -> None:
+        """Declare the law of a Gaussian random displacement ``sigma`` (mm, (M,) or scalar) along the unit vectors
+        ``direction`` (M, 3) or (3,): its covariance sigma² u uᵀ adds to ``rand_cov`` (effects draw independent
+        streams, so covariances add). The simulator turns it into each point's true noise std."""
+        sig = np.broadcast_to(np.asarray(sigma, np.float64), (self.m,))
+        u = np.broadcast_to(np.asarray(direction, np.float64), (self.m, 3))
+        self.rand_cov += (sig**2)[:, None, None] * u[:, :, None] * u[:, None, :]
 
     def along_ray(self, delta: np.ndarray) -> np.ndarray:
         """Displacement vectors (M, 3) for depth errors ``delta`` (mm, positive = farther from the source)."""

@@ -41,3 +41,4 @@ class Incidence(Effect):
         ctx.stats["dropped_weak_signal"] = int(weak.sum())
         sig = self.sigma(ci, ctx.cos_view, ctx.noise_gain)
         ctx.add_rand(self.name, ctx.along_ray(sig * rng.standard_normal(ctx.m)))
+        ctx.add_noise_cov(sig, ctx.d)

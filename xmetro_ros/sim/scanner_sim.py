@@ -21,7 +21,7 @@ from ..scanner import ScannerModel, ScanSettings, SettingsError
 from .effect import SimContext
 from .effects import EFFECTS, resolve_effects
 
-__all__ = ["DEFAULT_EXTENT_MM", "MARGIN_MM", "ScanGrid", "scan_grid", "simulate_scan"]
+__all__ = ["DEFAULT_EXTENT_MM", "MARGIN_MM", "ScanGrid", "error_noise_std", "scan_grid", "simulate_scan"]
 
 DEFAULT_EXTENT_MM = 40.0  # scanned length of a cylinder along its axis / side of a plane patch
 MARGIN_MM = 1.0  # extra scan length on each side of the artifact
@@ -115,6 +115,26 @@ def scan_grid(
     return ScanGrid(pose, s, u, period_s, scanner)
 
 
+def error_noise_std(artifact: Artifact, points: np.ndarray, cov: np.ndarray, step_mm: float = 1e-4) -> np.ndarray:
+    """Std (N, 3) mm of the random part of the per-axis error nominal − measured at noise-free points (N, 3) whose
+    Gaussian random displacement has covariance ``cov`` (N, 3, 3) mm².
+
+    The error map e(p) = project(p) − p is linear over the noise's scale (µm against radii of mm), so its random part
+    has covariance J·cov·Jᵀ with J the Jacobian of e at the point (central differences, three extra projections of
+    the whole cloud); on a sphere J ≈ −n nᵀ: only the normal share of the displacement reaches the error, spread
+    over the axes by the normal."""
+    p = np.asarray(points, np.float64)
+    if len(p) == 0:
+        return np.zeros((0, 3))
+    jac = np.empty((len(p), 3, 3))
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = step_mm
+        jac[:, :, k] = (artifact.errors(p + e) - artifact.errors(p - e)) / (2 * step_mm)
+    var = np.einsum("nij,njk,nik->ni", jac, cov, jac)
+    return np.sqrt(np.maximum(var, 0.0))
+
+
 def _check_inputs(artifact: Any, settings: Any, scanner: ScannerModel) -> None:
     if not isinstance(artifact, (Sphere, Cylinder, Plane)):
         raise ArtifactSpecError(
@@ -154,8 +174,11 @@ def simulate_scan(
 
     Returns:
         Scan with points (H, W, 3) mm (NaN = no return), fields intensity, line, t (s), u (mm) as float32,
-        ``expected_error`` (H, W, 3) = nominal − noise-free measured point (mm), and ``meta`` (effects with their
-        parameters, seed, scanner id, artifact, counts).
+        ``expected_error`` (H, W, 3) = nominal − noise-free measured point (mm), ``noise_std`` (H, W, 3) = std of
+        the random part of the measured error per axis (mm, scan frame; Gaussian noise laws of incidence, speckle
+        with its correlation, anisotropy; see :func:`error_noise_std`), ``injected_outlier`` (H, W) bool = the
+        spurious returns of the ``outliers`` effect (not Gaussian: excluded from ``noise_std``), and ``meta``
+        (effects with their parameters, seed, scanner id, artifact, counts).
 
     Raises:
         ArtifactSpecError: unknown artifact type. SettingsError: bad settings. UnknownEffectError /
@@ -218,6 +241,10 @@ def simulate_scan(
     pts[kidx] = measured
     exp_err = np.full((h * w, 3), np.nan)
     exp_err[kidx] = artifact.errors(measured_sys)
+    noise_std = np.full((h * w, 3), np.nan)
+    noise_std[kidx] = error_noise_std(artifact, measured_sys, ctx.rand_cov[keep])
+    injected = np.zeros(h * w, bool)
+    injected[np.asarray(ctx.stats.get("outlier_index", []), dtype=np.int64)] = True
     rows = np.repeat(np.arange(h, dtype=np.float32), w)
     line = np.full(h * w, np.nan, np.float32)
     line[kidx] = rows[kidx]
@@ -259,5 +286,7 @@ def simulate_scan(
         stamp_ns=int(stamp_ns),
         artifact=artifact,
         expected_error=exp_err.reshape(h, w, 3),
+        noise_std=noise_std.reshape(h, w, 3),
+        injected_outlier=injected.reshape(h, w),
         meta=meta,
     )

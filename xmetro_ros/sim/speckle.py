@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import ClassVar
 
 import numpy as np
-from scipy.ndimage import gaussian_filter
+from scipy.ndimage import gaussian_filter, gaussian_filter1d
 
 from .effect import Effect, SimContext
 
@@ -21,6 +21,24 @@ def correlated_field(shape: tuple[int, int], sigma_px: tuple[float, float], rng:
     imp[imp.shape[0] // 2, imp.shape[1] // 2] = 1.0
     k = gaussian_filter(imp, sigma=sigma_px, mode="constant")
     return f / np.sqrt(np.sum(k**2))
+
+
+def correlated_field_std(shape: tuple[int, int], sigma_px: tuple[float, float]) -> float:
+    """Exact std of :func:`correlated_field` on a grid of ``shape`` (1 unless the grid is shorter than the
+    kernel: the wrap-around folds the kernel onto itself). The filter is separable, so the variance of the wrapped
+    filter is the product over both axes of the sum of squares of the folded 1-D kernel."""
+    if max(sigma_px) <= 0:
+        return 1.0
+    var = 1.0
+    for n, s in zip(shape, sigma_px, strict=True):
+        delta = np.zeros(max(int(n), 1))
+        delta[0] = 1.0
+        folded = gaussian_filter1d(delta, sigma=s, mode="wrap") if s > 0 else delta
+        var *= float(np.sum(folded**2))
+    imp = np.zeros((int(8 * sigma_px[0]) + 1, int(8 * sigma_px[1]) + 1))
+    imp[imp.shape[0] // 2, imp.shape[1] // 2] = 1.0
+    k = gaussian_filter(imp, sigma=sigma_px, mode="constant")
+    return float(np.sqrt(var / np.sum(k**2)))
 
 
 class Speckle(Effect):
@@ -44,10 +62,10 @@ class Speckle(Effect):
 
     def apply(self, ctx: SimContext, rng: np.random.Generator) -> None:
         s = ctx.settings
-        field = correlated_field(
-            ctx.grid_shape,
-            (self.params["corr_s_mm"] * s.direction_density, self.params["corr_u_mm"] * s.lateral_density),
-            rng,
-        ).reshape(-1)[ctx.index]
+        sigma_px = (self.params["corr_s_mm"] * s.direction_density, self.params["corr_u_mm"] * s.lateral_density)
+        field = correlated_field(ctx.grid_shape, sigma_px, rng).reshape(-1)[ctx.index]
         sigma = self.params["sigma_mm"] / np.sqrt(1.0 + ctx.blur_mm / self.params["averaging_mm"])
         ctx.add_rand(self.name, ctx.along_ray(sigma * field))
+        # The correlation leaves each point's marginal law N(0, sigma²) except where the grid is shorter than the
+        # kernel (wrap-around): the exact field std covers that.
+        ctx.add_noise_cov(sigma * correlated_field_std(ctx.grid_shape, sigma_px), ctx.d)

@@ -1,0 +1,207 @@
+"""Calibrated 95 % intervals per point and axis: split-conformal calibration by cloud, the multivariate domain,
+and the interval metrics (coverage, width, sharpness against the simulator's oracle interval, rank correlation).
+
+Method (docs/learning.md, "Uncertainty"):
+
+* σ̂: the model's spread per point and axis (the PointNet spread head, ONNX output ``log_sigma``; 1 mm for members
+  without one, which makes the scores plain absolute residuals).
+* Calibration clouds are held out BY CLOUD from training (whole scans the model never saw), so the interval holds
+  on new clouds, not only on new points of the training clouds. Nonconformity score |y − ŷ| / σ̂ per axis,
+  computed with the published predictions (ONNX Runtime, each cloud partitioned into sets as at inference).
+* A floor ``SIGMA_FLOOR_MM`` is added to σ̂ (scores |y − ŷ| / (σ̂ + floor)): the spread head can learn σ̂ → 0
+  where the training error is identically zero, while the prediction itself is never exact (sub-µm residuals).
+* Rows whose measured error on an axis is identically zero by construction carry no information on that axis'
+  spread (the axial error of a cylinder: targets project onto the nominal surface) and are left out of that
+  axis' scores — otherwise a third of the scores would be ~0 and the quantile would under-cover every other point.
+* crepes' ``ConformalRegressor`` (normalized: ``sigmas``) gives the score quantile at the finite-sample level
+  ⌈(n + 1)·confidence⌉ / n; the multiplier is the half-width it returns for σ̂ = 1. U = multiplier × σ̂.
+* The multivariate domain: Mahalanobis distance in the standardized feature space (ridge-regularized covariance
+  of the training rows), threshold = its ``quantile`` on the training rows; stored in the card as ``domain_mv``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..inference import AXES, ModelSet
+
+__all__ = ["DOMAIN_QUANTILE", "SIGMA_FLOOR_MM", "calibrate", "conformal_multiplier", "cross_conformal_by_cloud",
+           "fit_domain", "interval_metrics", "predict_clouds"]
+
+SIGMA_FLOOR_MM = 0.001  # 1 µm: below any real spread of the scanner (> 2 µm), above the sub-µm prediction noise
+DOMAIN_QUANTILE = 0.999  # training points beyond it count as outside: 0.1 % of the training data by construction
+_RIDGE = 1e-3  # added to the standardized covariance: features that are (nearly) collinear stay invertible
+
+
+def fit_domain(X_train: np.ndarray, quantile: float = DOMAIN_QUANTILE) -> dict[str, Any]:
+    """The multivariate domain of the training rows X (M, F): ``{"method", "mean", "whiten", "threshold",
+    "quantile"}`` with whiten (F, F) such that ‖(x − mean) @ whiten‖ is the Mahalanobis distance."""
+    X = np.asarray(X_train, np.float64)
+    X = X[np.all(np.isfinite(X), axis=1)]
+    if len(X) < X.shape[1] + 2:
+        raise ValueError(f"the domain needs more than {X.shape[1] + 1} finite training rows, got {len(X)}")
+    mean = X.mean(0)
+    std = X.std(0)
+    std = np.where(std > 1e-12, std, 1.0)
+    Z = (X - mean) / std
+    cov = np.cov(Z, rowvar=False) + _RIDGE * np.eye(X.shape[1])
+    L = np.linalg.cholesky(cov)
+    whiten = np.diag(1.0 / std) @ np.linalg.inv(L).T
+    z = (X - mean) @ whiten
+    d = np.sqrt(np.einsum("ij,ij->i", z, z))
+    return {"method": "mahalanobis (standardized features, ridge-regularized covariance)",
+            "mean": mean.tolist(), "whiten": whiten.tolist(), "threshold": float(np.quantile(d, quantile)),
+            "quantile": float(quantile), "n_train": len(X),
+            "widening": "outside (distance > threshold) U is multiplied by distance / threshold"}
+
+
+def predict_clouds(ms: ModelSet, X: np.ndarray, cloud_id: np.ndarray, with_u: bool = True
+                   ) -> dict[str, np.ndarray]:
+    """Published predictions for rows of several clouds, each cloud on its own (its rows form the sets, in row
+    order). Returns errors, sigma (and U, out_of_domain, domain_distance with ``with_u``), rows aligned with X."""
+    X = np.asarray(X, np.float32)
+    cid = np.asarray(cloud_id)
+    out = {"errors": np.full((len(X), 3), np.nan), "sigma": np.full((len(X), 3), np.nan)}
+    if with_u:
+        out.update(U=np.full((len(X), 3), np.nan), out_of_domain=np.zeros(len(X), bool),
+                   domain_distance=np.full(len(X), np.nan))
+    for c in np.unique(cid):
+        rows = np.flatnonzero(cid == c)
+        if with_u:
+            r = ms.predict_with_uncertainty(X[rows])
+            out["errors"][rows], out["sigma"][rows], out["U"][rows] = r.errors, r.sigma, r.U
+            out["out_of_domain"][rows], out["domain_distance"][rows] = r.out_of_domain, r.domain_distance
+        else:
+            out["errors"][rows], out["sigma"][rows] = ms.predict_with_sigma(X[rows])
+    return out
+
+
+def conformal_multiplier(residuals: np.ndarray, sigmas: np.ndarray, confidence: float = 0.95) -> float:
+    """crepes' normalized split-conformal half-width for σ̂ = 1: the finite-sample quantile of |r| / σ̂ at level
+    ⌈(n + 1)·confidence⌉ / n (inf when n is too small for that level)."""
+    from crepes import ConformalRegressor
+
+    cr = ConformalRegressor().fit(residuals=np.asarray(residuals, np.float64), sigmas=np.asarray(sigmas, np.float64))
+    return float(cr.predict_int(y_hat=np.zeros(1), sigmas=np.ones(1), confidence=confidence)[0, 1])
+
+
+def cross_conformal_by_cloud(y: np.ndarray, pred: np.ndarray, sigma: np.ndarray, cloud_id: np.ndarray,
+                             confidence: float = 0.95, seed: int = 0,
+                             sigma_floor_mm: float = SIGMA_FLOOR_MM) -> dict[str, dict[str, float]]:
+    """Coverage and mean width of the calibrated intervals on clouds the model never saw, for the study tables:
+    the clouds are split in two halves BY CLOUD (seeded); each half is calibrated on the other (split-conformal,
+    :func:`conformal_multiplier`) and judged; the hits and widths of both halves are pooled. Per axis: coverage,
+    mean_width_mm (2U), multiplier (mean of the two). Rows with an identically zero target are left out."""
+    cid = np.asarray(cloud_id)
+    clouds = np.unique(cid)
+    if len(clouds) < 2:
+        raise ValueError("cross-conformal calibration needs at least two held-out clouds")
+    half = np.isin(cid, np.random.default_rng(seed).permutation(clouds)[: len(clouds) // 2])
+    out = {}
+    for a, ax in enumerate(AXES):
+        ok = np.isfinite(y[:, a]) & np.isfinite(pred[:, a]) & np.isfinite(sigma[:, a]) & (y[:, a] != 0.0)
+        r = np.abs(y[:, a] - pred[:, a])
+        sg = sigma[:, a] + sigma_floor_mm
+        hits, widths, ks = [], [], []
+        for cal in (half, ~half):
+            c, t = ok & cal, ok & ~cal
+            k = conformal_multiplier(r[c], sg[c], confidence)
+            hits.append(r[t] <= k * sg[t])
+            widths.append(2 * k * sg[t])
+            ks.append(k)
+        out[ax] = {"coverage": float(np.concatenate(hits).mean()),
+                   "mean_width_mm": float(np.concatenate(widths).mean()), "multiplier": float(np.mean(ks))}
+    return out
+
+
+def calibrate(model_dir: str | Path, X: np.ndarray, y: np.ndarray, cloud_id: np.ndarray,
+              confidence: float = 0.95, cloud_labels: list | None = None, write: bool = True,
+              sigma_floor_mm: float = SIGMA_FLOOR_MM) -> dict[str, Any]:
+    """Split-conformal calibration of the model set in ``model_dir`` on calibration clouds (rows X (M, F),
+    measured errors y (M, 3) mm, cloud ids): writes the card's ``uncertainty`` block (unless ``write`` False) and
+    returns it. The clouds must be held out from training (the caller's split; their ids / labels are recorded).
+    """
+    if not 0 < confidence < 1:
+        raise ValueError(f"confidence must be in (0, 1), got {confidence}")
+    ms = ModelSet.load(model_dir)
+    y = np.asarray(y, np.float64)
+    pred = predict_clouds(ms, X, cloud_id, with_u=False)
+    mult, achieved, n = [], [], []
+    for a in range(3):
+        ok = np.isfinite(y[:, a]) & np.isfinite(pred["errors"][:, a]) & (pred["sigma"][:, a] > 0)
+        ok &= y[:, a] != 0.0  # identically zero by construction (see the module doc)
+        if ok.sum() < 1 / (1 - confidence):
+            raise ValueError(f"{int(ok.sum())} calibration points on axis {AXES[a]}: too few for {confidence:g}")
+        res = y[ok, a] - pred["errors"][ok, a]
+        sig = pred["sigma"][ok, a] + sigma_floor_mm
+        k = conformal_multiplier(res, sig, confidence)
+        mult.append(k)
+        achieved.append(float(np.mean(np.abs(res) <= k * sig)))
+        n.append(int(ok.sum()))
+    ids = np.unique(np.asarray(cloud_id)).tolist()
+    block = {
+        "method": "split-conformal (crepes ConformalRegressor, normalized scores |y - yhat| / sigma_hat), "
+                  "calibration clouds held out from training by cloud",
+        "confidence": float(confidence),
+        "multiplier": mult,
+        "sigma_floor_mm": float(sigma_floor_mm),
+        "U": "multiplier[axis] * (sigma_hat + sigma_floor_mm), times distance/threshold outside domain_mv",
+        "sigma_source": {AXES[a]: ("log_sigma output" if any(m.sigma and a in m.axes for m in ms.members)
+                                   else "constant 1 mm (absolute residuals)") for a in range(3)},
+        "calibration_clouds": cloud_labels if cloud_labels is not None else ids,
+        "n_calibration_points": n,
+        "achieved_coverage_calibration": dict(zip(AXES, achieved, strict=True)),
+    }
+    if write:
+        p = Path(model_dir) / "card.json"
+        card = json.loads(p.read_text())
+        card["uncertainty"] = block
+        p.write_text(json.dumps(card, indent=1, sort_keys=True))
+    return block
+
+
+def _spearman(a: np.ndarray, b: np.ndarray) -> float:
+    from scipy.stats import spearmanr
+
+    return float(spearmanr(a, b).statistic)
+
+
+def interval_metrics(errors: np.ndarray, U: np.ndarray, y: np.ndarray, oracle_std: np.ndarray | None = None,
+                     bins: dict[str, tuple[np.ndarray, np.ndarray]] | None = None, z: float = 1.96) -> dict:
+    """Per axis: coverage of errors ± U over the measured errors y, mean U, mean width (2U); with the oracle std:
+    mean U / mean oracle half-width (z · std; the sharpness ratio) and the Spearman rank correlation of U with
+    the true std; points where the true std is 0 (no random error on that axis) are left out.
+    ``bins``: name → (values (M,), edges): coverage per bin (conditional coverage)."""
+    err, U, y = (np.asarray(v, np.float64) for v in (errors, U, y))
+    out: dict[str, Any] = {}
+    for a, ax in enumerate(AXES):
+        ok = np.isfinite(err[:, a]) & np.isfinite(U[:, a]) & np.isfinite(y[:, a])
+        if oracle_std is not None:  # axes with a true spread (not the identically-zero axial error of a cylinder)
+            ok &= np.isfinite(oracle_std[:, a]) & (oracle_std[:, a] > 0)
+        if not ok.any():
+            out[ax] = {"n": 0}
+            continue
+        hit = np.abs(y[ok, a] - err[ok, a]) <= U[ok, a]
+        m: dict[str, Any] = {"n": int(ok.sum()), "coverage": float(hit.mean()), "mean_U": float(U[ok, a].mean()),
+                             "mean_width": float(2 * U[ok, a].mean())}
+        if oracle_std is not None:
+            s = oracle_std[ok, a]
+            m["mean_oracle_half_width"] = float(z * s.mean())
+            ho = m["mean_oracle_half_width"]
+            m["sharpness_ratio"] = m["mean_U"] / ho if ho > 0 else float("nan")
+            m["spearman_U_true_std"] = _spearman(U[ok, a], s) if np.ptp(s) > 0 else float("nan")
+        if bins:
+            m["bins"] = {}
+            for name, (vals, edges) in bins.items():
+                v = np.asarray(vals, np.float64)[ok]
+                k = np.digitize(v, edges[1:-1])
+                m["bins"][name] = [
+                    {"lo": float(edges[i]), "hi": float(edges[i + 1]), "n": int((k == i).sum()),
+                     "coverage": float(hit[k == i].mean()) if (k == i).any() else None}
+                    for i in range(len(edges) - 1)]
+        out[ax] = m
+    return out
