@@ -36,7 +36,8 @@ PARAMS: tuple[ParamSpec, ...] = (
               read_only=True),
     ParamSpec("scanner_config", "", "path", "scanner YAML; '' = the packaged config/scanners/default.yaml",
               read_only=True),
-    ParamSpec("inference_threads", 2, "threads", "ONNX Runtime intra-op threads", 1, 16, read_only=True),
+    ParamSpec("inference_threads", 1, "threads", "ONNX Runtime intra-op threads (1: fastest on the shared 2-core "
+              "machine, bench/bench_node.py)", 1, 16, read_only=True),
     ParamSpec("default_lateral_density", 10000.0, "1/m", "settings used when none received: points per metre "
               "along the laser line", 1.0, 1e6),
     ParamSpec("default_direction_density", 4000.0, "1/m", "settings used when none received: profiles per metre "
