@@ -110,8 +110,8 @@ class ScanResult:
 
 def warm_up() -> float:
     """Compile, or load from numba's on-disk cache, the compiled kernels of the judge path (grid pre-processing,
-    summary statistics) so the first scan does not pay for it: ~0.5 s per process from the cache, ~10-15 s on the
-    very first run of an installation (measured, docs/node.md). Returns the seconds taken."""
+    summary statistics) so the first scan does not pay for it: 0.5-1 s per process from numba's disk cache, 6-30 s
+    (machine load) on the very first run of an installation (docs/node.md). Returns the seconds taken."""
     import time
 
     from . import grid_kernels, scan_stats
