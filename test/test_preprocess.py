@@ -40,13 +40,14 @@ def scanner():
     return ScannerModel.load()
 
 
-def test_grid_normals_agree_with_open3d_on_sphere():
+@pytest.mark.parametrize("backend", pp.GRID_BACKENDS)
+def test_grid_normals_agree_with_open3d_on_sphere(backend):
     # Stated in docs/features.md: median <= 0.5 deg over all points, 95th percentile <= 1 deg over the points with
     # quality >= 0.9 (all but the outermost rows/columns of the scan), on a sphere scan with 5 um depth noise.
     scan = grid_scan(Sphere(20.0), noise=0.005)
     flat, _, idx = scan.flat()
     true = Sphere(20.0).normals(flat)
-    n_grid, q = pp.estimate_normals(flat, grid_shape=scan.shape, grid_index=idx, toward=true)
+    n_grid, q = pp.estimate_normals(flat, grid_shape=scan.shape, grid_index=idx, toward=true, grid_backend=backend)
     n_o3d, q_o3d = pp.estimate_normals(flat, radius_mm=1.0, max_nn=30, toward=true)
     a = angles(n_grid, n_o3d)
     assert np.median(a) <= 0.5

@@ -35,6 +35,7 @@ from .scan import Scan
 from .scanner import ScannerModel, ScanSettings
 
 __all__ = [
+    "GRID_BACKENDS",
     "UNORGANIZED_METHODS",
     "Prepared",
     "PreprocessConfig",
@@ -43,11 +44,17 @@ __all__ = [
     "estimate_normals",
     "grid_normals",
     "grid_outliers",
+    "normals_grid",
+    "normals_knn",
+    "normals_open3d",
     "prepare_scan",
     "remove_outliers",
 ]
 
 UNORGANIZED_METHODS = ("knn", "open3d")
+# Organized-grid implementations: "numba" (compiled kernels, xmetro_ros.grid_kernels; default) and "numpy" (the
+# reference they are tested bit-identical against).
+GRID_BACKENDS = ("numba", "numpy")
 
 
 class PreprocessError(ValueError):
@@ -67,6 +74,8 @@ class PreprocessConfig:
             20 rather than 30 makes the path 10-25 % cheaper at a normal accuracy inside the stated bounds.
         knn_workers: threads for the kNN query (the live node runs on 2 cores).
         use_grid: use the organized-grid path when the scan is organized.
+        grid_backend: ``"numba"`` (compiled kernels, default) or ``"numpy"``: the same rules with bit-identical
+            outlier masks, normals and quality (see xmetro_ros.grid_kernels); numpy is kept as the reference.
         grid_window: side of the box window (grid cells, odd) the grid normals are averaged over.
         grid_min_offset_mm: a point is an outlier when its offset from the chords of its grid neighbours (in both
             directions) exceeds this (mm) ...
@@ -85,6 +94,7 @@ class PreprocessConfig:
     knn_normal_neighbors: int = 20
     knn_workers: int = 2
     use_grid: bool = True
+    grid_backend: str = "numba"
     grid_window: int = 5
     grid_min_offset_mm: float = 0.05
     grid_offset_factor: float = 6.0
@@ -96,6 +106,8 @@ class PreprocessConfig:
         if self.unorganized_method not in UNORGANIZED_METHODS:
             raise PreprocessError(f"unorganized_method must be one of {UNORGANIZED_METHODS}, "
                                   f"got {self.unorganized_method!r}")
+        if self.grid_backend not in GRID_BACKENDS:
+            raise PreprocessError(f"grid_backend must be one of {GRID_BACKENDS}, got {self.grid_backend!r}")
         if self.knn_normal_neighbors < 3 or self.knn_workers < 1:
             raise PreprocessError(f"knn_normal_neighbors must be >= 3 and knn_workers >= 1, got "
                                   f"{self.knn_normal_neighbors}, {self.knn_workers}")
@@ -376,6 +388,62 @@ def remove_outliers(
     return keep_u[inverse]
 
 
+def _check_grid_window(window: int) -> None:
+    if window < 1 or window % 2 == 0:
+        raise PreprocessError(f"grid_window must be an odd number >= 1, got {window}")
+
+
+def normals_grid(
+    points: np.ndarray, grid_shape: tuple[int, int], grid_index: np.ndarray, *, grid_window: int = 5,
+    backend: str = "numba",
+) -> tuple[np.ndarray, np.ndarray]:
+    """Organized-grid normals of finite points (N, 3) mm at flat indices ``grid_index`` (N,) of an ``grid_shape``
+    (H, W) grid: the normalised ``grid_window`` × ``grid_window`` window mean of the raw cross-product normals
+    (see :func:`grid_normals`). Returns (normals (N, 3) float32, NaN where undefined, sign the grid's; quality (N,)
+    float32). ``backend``: "numba" or "numpy" (bit-identical)."""
+    h, w = (int(x) for x in grid_shape)
+    gi = np.asarray(grid_index, dtype=np.int64)
+    if gi.shape != (len(points),) or (len(gi) and (gi.min() < 0 or gi.max() >= h * w)):
+        raise PreprocessError(f"grid_index must be {len(points)} flat indices into a {h}x{w} grid")
+    _check_grid_window(grid_window)
+    grid = np.full((h * w, 3), np.nan, dtype=np.float32)
+    grid[gi] = points
+    nx, ny, nz, q = _grid_normal_planes(*_planes(grid.reshape(h, w, 3)), grid_window, backend)
+    normals = np.stack([nx.reshape(-1)[gi], ny.reshape(-1)[gi], nz.reshape(-1)[gi]], axis=1)
+    return normals, q.reshape(-1)[gi]
+
+
+def normals_knn(
+    points: np.ndarray, *, radius_mm: float = 1.5, max_nn: int = 30, workers: int = 2
+) -> tuple[np.ndarray, np.ndarray]:
+    """Normals of finite points (N, 3) mm from the covariance of their ``max_nn`` nearest neighbours within
+    ``radius_mm`` (one scipy cKDTree query, ``workers`` threads; smallest eigenvector in closed form). Returns
+    (normals (N, 3) float32, NaN where undefined, sign arbitrary; quality = planarity 1 − λ0/λ1 (N,) float32)."""
+    _, normals, quality = _knn_unorganized(points, 0, 0.0, float(radius_mm), int(max_nn), outliers=False,
+                                           workers=workers)
+    return normals, quality
+
+
+def normals_open3d(points: np.ndarray, *, radius_mm: float = 1.5, max_nn: int = 30) -> tuple[np.ndarray, np.ndarray]:
+    """open3d KD-tree normal estimation (hybrid ``radius_mm`` / ``max_nn``) of finite points (N, 3) mm, duplicates
+    collapsed first. Returns (normals (N, 3) float32, sign arbitrary; quality (N,) float32 = 1 − nearest-neighbour
+    distance / radius, clipped to [0, 1])."""
+    import open3d as o3d
+
+    first, inverse = dedupe(points)
+    pu = points[first]
+    if len(pu) < 3:
+        return np.zeros((len(points), 3), np.float32), np.zeros(len(points), np.float32)
+    pc = _o3d_cloud(pu)
+    pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=float(radius_mm), max_nn=int(max_nn)))
+    nu = np.asarray(pc.normals, dtype=np.float32)
+    # Quality: 1 − (nearest-neighbour distance / radius), clipped: 0 for lone points (open3d gives them an
+    # arbitrary normal), low in sparse regions. A neighbour-count query would double the cost of this path.
+    dnn = np.asarray(pc.compute_nearest_neighbor_distance(), dtype=np.float32)
+    qu = np.clip(1.0 - dnn / np.float32(radius_mm), 0.0, 1.0).astype(np.float32)
+    return nu[inverse], qu[inverse]
+
+
 def estimate_normals(
     points: np.ndarray,
     *,
@@ -387,55 +455,29 @@ def estimate_normals(
     grid_window: int = 5,
     method: str = "open3d",
     workers: int = 2,
+    grid_backend: str = "numba",
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Unit normals (N, 3) float32 and a quality (N,) float32 in [0, 1] for finite points (N, 3), mm.
+    """Unit normals (N, 3) float32 and a quality (N,) float32 in [0, 1] for finite points (N, 3), mm: a dispatcher.
 
-    With ``grid_shape=(H, W)`` and ``grid_index`` (flat index of each point into the H×W grid) the organized grid
-    path is used (``grid_window`` cells); otherwise ``method="open3d"``: open3d KD-tree estimation (hybrid
-    ``radius_mm`` / ``max_nn``; quality from the nearest-neighbour distance), or ``"knn"``: covariance of the
-    ``max_nn`` nearest neighbours within ``radius_mm`` (scipy cKDTree, ``workers`` threads; quality = planarity).
-    Normals are oriented to have a positive dot with ``toward`` ((N,3) or (3,)), or away from the centroid.
-    Points without a usable neighbourhood get quality 0 and the orientation reference as normal."""
+    With ``grid_shape=(H, W)`` and ``grid_index`` (flat index of each point into the H×W grid):
+    :func:`normals_grid` (``grid_window`` cells, ``grid_backend``); otherwise ``method="open3d"``:
+    :func:`normals_open3d` (hybrid ``radius_mm`` / ``max_nn``), or ``"knn"``: :func:`normals_knn` (``workers``
+    threads). Normals are oriented to have a positive dot with ``toward`` ((N,3) or (3,)), or away from the
+    centroid. Points without a usable neighbourhood get quality 0 and the orientation reference as normal."""
     p = _check_points(points)
     if grid_shape is not None:
         if grid_index is None:
             raise PreprocessError("grid_shape needs grid_index (flat index of each point into the grid)")
-        h, w = (int(x) for x in grid_shape)
-        gi = np.asarray(grid_index, dtype=np.int64)
-        if gi.shape != (len(p),) or (len(gi) and (gi.min() < 0 or gi.max() >= h * w)):
-            raise PreprocessError(f"grid_index must be {len(p)} flat indices into a {h}x{w} grid")
-        grid = np.full((h * w, 3), np.nan, dtype=np.float32)
-        grid[gi] = p
-        if grid_window < 1 or grid_window % 2 == 0:
-            raise PreprocessError(f"grid_window must be an odd number >= 1, got {grid_window}")
-        nx, ny, nz, q, _ = _grid_normals_planes(*_planes(grid.reshape(h, w, 3)), grid_window)
-        normals = np.stack([nx.reshape(-1)[gi], ny.reshape(-1)[gi], nz.reshape(-1)[gi]], axis=1)
-        quality = q.reshape(-1)[gi]
+        normals, quality = normals_grid(p, grid_shape, grid_index, grid_window=grid_window, backend=grid_backend)
     else:
         if not radius_mm > 0 or max_nn < 3:
             raise PreprocessError(f"radius_mm must be > 0 and max_nn >= 3, got {radius_mm}, {max_nn}")
-        if method not in UNORGANIZED_METHODS:
-            raise PreprocessError(f"method must be one of {UNORGANIZED_METHODS}, got {method!r}")
-    if grid_shape is None and method == "knn":
-        _, normals, quality = _knn_unorganized(p, 0, 0.0, float(radius_mm), int(max_nn), outliers=False,
-                                               workers=workers)
-    elif grid_shape is None:
-        import open3d as o3d
-
-        first, inverse = dedupe(p)
-        pu = p[first]
-        if len(pu) < 3:
-            normals = np.zeros((len(p), 3), np.float32)
-            quality = np.zeros(len(p), np.float32)
+        if method == "knn":
+            normals, quality = normals_knn(p, radius_mm=radius_mm, max_nn=max_nn, workers=workers)
+        elif method == "open3d":
+            normals, quality = normals_open3d(p, radius_mm=radius_mm, max_nn=max_nn)
         else:
-            pc = _o3d_cloud(pu)
-            pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=float(radius_mm), max_nn=int(max_nn)))
-            nu = np.asarray(pc.normals, dtype=np.float32)
-            # Quality: 1 − (nearest-neighbour distance / radius), clipped: 0 for lone points (open3d gives them an
-            # arbitrary normal), low in sparse regions. A neighbour-count query would double the cost of this path.
-            dnn = np.asarray(pc.compute_nearest_neighbor_distance(), dtype=np.float32)
-            qu = np.clip(1.0 - dnn / np.float32(radius_mm), 0.0, 1.0).astype(np.float32)
-            normals, quality = nu[inverse], qu[inverse]
+            raise PreprocessError(f"method must be one of {UNORGANIZED_METHODS}, got {method!r}")
     normals = np.ascontiguousarray(normals, dtype=np.float32)
     bad = ~np.isfinite(normals).all(axis=1) | (np.einsum("ij,ij->i", normals, normals) < 0.25)
     _orient(normals, p, toward)
@@ -517,9 +559,36 @@ def _grid_outliers_planes(
     return out
 
 
+def _grid_outlier_mask(
+    x: np.ndarray, y: np.ndarray, z: np.ndarray, valid: np.ndarray, min_offset_mm: float, offset_factor: float,
+    gap_factor: float, scale_window: int, backend: str,
+) -> np.ndarray:
+    """The grid outlier mask by ``backend`` ("numba": compiled kernels; "numpy"): bit-identical results."""
+    if backend == "numba":
+        from . import grid_kernels
+
+        return grid_kernels.grid_outliers(x, y, z, valid, min_offset_mm, offset_factor, gap_factor, scale_window)
+    if backend != "numpy":
+        raise PreprocessError(f"grid backend must be one of {GRID_BACKENDS}, got {backend!r}")
+    return _grid_outliers_planes(x, y, z, valid, min_offset_mm, offset_factor, gap_factor, scale_window)
+
+
+def _grid_normal_planes(
+    x: np.ndarray, y: np.ndarray, z: np.ndarray, valid: np.ndarray, window: int, backend: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(nx, ny, nz, quality) planes by ``backend`` ("numba" or "numpy"): bit-identical results."""
+    if backend == "numba":
+        from . import grid_kernels
+
+        return grid_kernels.grid_normals_planes(x, y, z, valid, window)
+    if backend != "numpy":
+        raise PreprocessError(f"grid backend must be one of {GRID_BACKENDS}, got {backend!r}")
+    return _grid_normals_planes(x, y, z, valid, window)[:4]
+
+
 def grid_outliers(
     grid: np.ndarray, min_offset_mm: float = 0.05, offset_factor: float = 6.0, gap_factor: float = 20.0,
-    scale_window: int = 9,
+    scale_window: int = 9, backend: str = "numba",
 ) -> np.ndarray:
     """Outliers of an organized cloud (H, W, 3) mm with NaN holes. Returns a boolean (H, W) mask (True = outlier;
     holes are never outliers).
@@ -530,9 +599,9 @@ def grid_outliers(
     that have both neighbours. Outlier: score > max(min_offset_mm, offset_factor × the window mean of the scores
     over ``scale_window`` × ``scale_window`` cells) — a local noise scale, since noise grows toward grazing
     incidence. Points whose nearest valid 4-neighbour is farther than gap_factor × the median spacing, or that
-    have none, are outliers too (isolated returns)."""
+    have none, are outliers too (isolated returns). ``backend``: "numba" (compiled) or "numpy" (bit-identical)."""
     x, y, z, valid = _planes(grid)
-    return _grid_outliers_planes(x, y, z, valid, min_offset_mm, offset_factor, gap_factor, scale_window)
+    return _grid_outlier_mask(x, y, z, valid, min_offset_mm, offset_factor, gap_factor, scale_window, backend)
 
 
 def _grid_normals_planes(
@@ -576,23 +645,49 @@ def _grid_normals_planes(
     return nx, ny, nz, q, ok
 
 
-def grid_normals(grid: np.ndarray, window: int = 5) -> tuple[np.ndarray, np.ndarray]:
+def grid_normals(grid: np.ndarray, window: int = 5, backend: str = "numba") -> tuple[np.ndarray, np.ndarray]:
     """Normals and quality of an organized cloud (H, W, 3) mm with NaN holes, fully vectorised in float32.
 
     Raw normal per cell = (column tangent × row tangent) from NaN-aware central differences (one-sided at holes),
     normalised; the normal is the normalised mean of the raw unit normals over a ``window`` × ``window`` box and
     the quality is the length of that mean in [0, 1] (1 = full, planar, noise-free window; missing cells count 0).
     Returns (normals (H, W, 3) float32 unit, NaN where undefined; quality (H, W) float32). Orientation is the
-    grid's (consistent over the grid, sign arbitrary): ``estimate_normals`` / ``prepare_scan`` orient them."""
+    grid's (consistent over the grid, sign arbitrary): ``estimate_normals`` / ``prepare_scan`` orient them.
+    ``backend``: "numba" (compiled) or "numpy" (bit-identical)."""
     if window < 1 or window % 2 == 0:
         raise PreprocessError(f"window must be an odd number >= 1, got {window}")
     x, y, z, valid = _planes(grid)
-    nx, ny, nz, q, _ = _grid_normals_planes(x, y, z, valid, window)
+    nx, ny, nz, q = _grid_normal_planes(x, y, z, valid, window, backend)
     return np.stack([nx, ny, nz], axis=2), q
 
 
 # ----------------------------------------------------------------------------------------------------------------
 # whole scan
+
+
+def _prepare_grid_compiled(
+    pts: np.ndarray, cfg: PreprocessConfig, remove: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """The grid path of :func:`prepare_scan` with the compiled kernels: (outlier flat indices,
+    kept flat indices, kept points (M, 3) float64, their normals (M, 3) float32 (NaN: undefined, sign the grid's)
+    and quality (M,), number of valid cells). Same rules and results as the numpy branch there."""
+    from . import grid_kernels
+
+    x, y, z, gvalid, n_valid = grid_kernels.planes(pts)
+    if n_valid == 0:
+        raise PreprocessError(f"no finite point in the cloud ({gvalid.size} points, all NaN/inf)")
+    out_mask = grid_kernels.grid_outliers(x, y, z, gvalid, cfg.grid_min_offset_mm, cfg.grid_offset_factor,
+                                          cfg.grid_gap_factor, cfg.grid_scale_window)
+    outlier = np.flatnonzero(out_mask)
+    if remove and outlier.size:
+        for c in (x, y, z):
+            c[out_mask] = np.nan
+        gvalid &= ~out_mask
+    n_kept = n_valid - outlier.size if remove else n_valid  # outliers are valid cells
+    if n_kept < cfg.min_points:
+        raise PreprocessError(f"only {n_kept} points left after outlier removal (need {cfg.min_points})")
+    index, normals, quality, points = grid_kernels.kept_normals(pts, x, y, z, gvalid, cfg.grid_window)
+    return outlier, index, points, normals, quality, n_valid
 
 
 def prepare_scan(
@@ -616,7 +711,9 @@ def prepare_scan(
         valid = np.isfinite(flat).all(axis=1)
         if not valid.any():
             raise PreprocessError(f"no finite point in the cloud ({len(flat)} points, all NaN/inf)")
-    if grid:
+    if grid and cfg.grid_backend == "numba":
+        outlier, index, points, normals, quality, n_valid = _prepare_grid_compiled(pts_all, cfg, remove)
+    elif grid:
         _h, _w = scan.shape
         x, y, z, gvalid = _planes(pts_all)
         n_valid = int(np.count_nonzero(gvalid))
@@ -658,13 +755,18 @@ def prepare_scan(
             normals, quality = estimate_normals(points, radius_mm=cfg.normal_radius_mm, max_nn=cfg.max_nn)
     geom = point_geometry(points, scan.pose, scanner.camera_mm, dtype=np.float32)
     # Orient toward the laser source (outward on the lit side of a closed artifact); undefined normals → L, q = 0.
-    normals = np.ascontiguousarray(normals, dtype=np.float32)
-    bad = ~np.isfinite(normals).all(axis=1)
-    if bad.any():
-        normals[bad] = geom.L[bad]
-        quality = quality.copy()
-        quality[bad] = 0
-    _orient(normals, points, geom.L)
+    if grid and cfg.grid_backend == "numba":
+        from . import grid_kernels
+
+        grid_kernels.orient_rows(normals, quality, geom.L)  # the same two rules in one compiled pass
+    else:
+        normals = np.ascontiguousarray(normals, dtype=np.float32)
+        bad = ~np.isfinite(normals).all(axis=1)
+        if bad.any():
+            normals[bad] = geom.L[bad]
+            quality = quality.copy()
+            quality[bad] = 0
+        _orient(normals, points, geom.L)
     fields = {k: np.asarray(v).reshape(-1)[index] for k, v in scan.fields.items()}
     return Prepared(
         points=points,

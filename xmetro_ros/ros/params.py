@@ -40,7 +40,8 @@ PARAMS: tuple[ParamSpec, ...] = (
               read_only=True),
     ParamSpec("allow_foreign_model", False, "", "use a model set trained for another scanner than scanner_config's "
               "(refused by default: the node starts degraded and says why)", read_only=True),
-    ParamSpec("inference_threads", 2, "threads", "ONNX Runtime intra-op threads", 1, 16, read_only=True),
+    ParamSpec("inference_threads", 1, "threads", "ONNX Runtime intra-op threads (1: fastest on the shared 2-core "
+              "machine, bench/bench_node.py)", 1, 16, read_only=True),
     ParamSpec("default_lateral_density", 10000.0, "1/m", "settings used when none received: points per metre "
               "along the laser line", 1.0, 1e6),
     ParamSpec("default_direction_density", 4000.0, "1/m", "settings used when none received: profiles per metre "
