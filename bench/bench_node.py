@@ -191,9 +191,9 @@ def threads(core, scan, reps: int, model_dir: str) -> dict:
 
 def stages(core, scan, reps: int) -> dict:
     """Median time of each stage of the judge on one scan (same process, measured separately)."""
-    from xmetro_ros import grid_kernels as gk
     from xmetro_ros.features import FeatureContext, compute_features
     from xmetro_ros.geometry import point_geometry
+    from xmetro_ros.preprocess import grid_kernels as gk
     from xmetro_ros.preprocess import prepare_scan
     from xmetro_ros.ros.convert import cloud_to_scan, scan_to_cloud
 

@@ -24,6 +24,7 @@ from xmetro_ros import preprocess as pp
 from xmetro_ros.artifacts import Sphere
 from xmetro_ros.features import STUDY_FEATURES, FeatureContext, compute_features
 from xmetro_ros.geometry import HeadPose
+from xmetro_ros.preprocess import knn as pp_knn
 from xmetro_ros.scan import Scan
 from xmetro_ros.scanner import ScannerModel, ScanSettings
 
@@ -92,14 +93,14 @@ def main() -> None:
     # breakdown of the knn path on the distinct cloud (scan order)
     k = max(knn_cfg.nb_neighbors, knn_cfg.knn_normal_neighbors)
     res["knn_breakdown"] = {"dedupe": best(lambda: pp.dedupe(flat))}
-    res["knn_breakdown"][f"knn_query_k{k}"] = best(lambda: pp._knn(flat, k, knn_cfg.knn_workers))
-    dist, nbr, query = pp._knn(flat, k, knn_cfg.knn_workers)
+    res["knn_breakdown"][f"knn_query_k{k}"] = best(lambda: pp_knn._knn(flat, k, knn_cfg.knn_workers))
+    dist, nbr, query = pp_knn._knn(flat, k, knn_cfg.knn_workers)
     keep = np.zeros(len(flat), bool)
-    keep[query] = pp._sor_keep(dist, knn_cfg.nb_neighbors, knn_cfg.std_ratio)
+    keep[query] = pp_knn._sor_keep(dist, knn_cfg.nb_neighbors, knn_cfg.std_ratio)
     sel = np.flatnonzero(keep[query])
-    res["knn_breakdown"]["sor"] = best(lambda: pp._sor_keep(dist, knn_cfg.nb_neighbors, knn_cfg.std_ratio))
+    res["knn_breakdown"]["sor"] = best(lambda: pp_knn._sor_keep(dist, knn_cfg.nb_neighbors, knn_cfg.std_ratio))
     res["knn_breakdown"]["normals"] = best(
-        lambda: pp._knn_normals(flat, query[sel], dist[sel], nbr[sel], keep, knn_cfg.normal_radius_mm))
+        lambda: pp_knn._knn_normals(flat, query[sel], dist[sel], nbr[sel], keep, knn_cfg.normal_radius_mm))
     # agreement of the knn path with the open3d path on this cloud
     fast = pp.prepare_scan(unorg, knn_cfg, scanner=scanner)
     ref = pp.prepare_scan(unorg, o3d_cfg, scanner=scanner)

@@ -1,5 +1,6 @@
-"""Compiled grid pre-processing (xmetro_ros.grid_kernels) against the numpy path it replaces: bit-identical outlier
-masks, normals, quality, kept points and orientation on simulated organized scans with NaN holes and outliers."""
+"""Compiled grid pre-processing (xmetro_ros.preprocess.grid_kernels) against the numpy path it replaces:
+bit-identical outlier masks, normals, quality, kept points and orientation on simulated organized scans with NaN
+holes and outliers."""
 
 from __future__ import annotations
 
@@ -9,9 +10,11 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from xmetro_ros import grid_kernels as gk
 from xmetro_ros import preprocess as pp
 from xmetro_ros.artifacts import Cylinder, Plane, Sphere
+from xmetro_ros.preprocess import grid as pp_grid
+from xmetro_ros.preprocess import grid_kernels as gk
+from xmetro_ros.preprocess import points as pp_points
 from xmetro_ros.scanner import ScannerModel, ScanSettings
 from xmetro_ros.sim import simulate_scan
 
@@ -71,17 +74,17 @@ def test_box_mean_is_scipy_uniform_filter(size):
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_outlier_mask_and_normal_planes_bit_identical(sim_scan, dtype):
     g = np.asarray(sim_scan.points, dtype=dtype)
-    x, y, z, valid = pp._planes(g)
+    x, y, z, valid = pp_grid._planes(g)
     x2, y2, z2, valid2, n = gk.planes(g)
     assert n == int(valid.sum()) and np.array_equal(valid, valid2)
     assert all(np.array_equal(bits(a), bits(b)) for a, b in ((x, x2), (y, y2), (z, z2)))
     for scale_window, factor in ((9, 6.0), (5, 3.0)):
         args = (0.05, factor, 20.0, scale_window)
-        m_np = pp._grid_outliers_planes(x, y, z, valid, *args)
-        m_nb = pp._grid_outlier_mask(x, y, z, valid, *args, "numba")
+        m_np = pp_grid._grid_outliers_planes(x, y, z, valid, *args)
+        m_nb = pp_grid._grid_outlier_mask(x, y, z, valid, *args, "numba")
         assert m_np.any() and np.array_equal(m_np, m_nb)
     for window in (1, 3, 5, 7):
-        ref = pp._grid_normals_planes(x, y, z, valid, window)[:4]
+        ref = pp_grid._grid_normals_planes(x, y, z, valid, window)[:4]
         got = gk.grid_normals_planes(x, y, z, valid, window)
         for a, b in zip(ref, got, strict=True):
             assert np.array_equal(bits(a), bits(b)), window
@@ -136,7 +139,7 @@ def test_orient_rows_matches_numpy_rules():
     n_np, q_np = n.copy(), q.copy()
     bad = ~np.isfinite(n_np).all(axis=1)
     n_np[bad], q_np[bad] = ref[bad], 0
-    pp._orient(n_np, None, ref)
+    pp_points._orient(n_np, None, ref)
     gk.orient_rows(n, q, ref)
     assert np.array_equal(bits(n), bits(n_np)) and np.array_equal(bits(q), bits(q_np))
     assert np.array_equal(n[11], [1.0, 0.0, 0.0])

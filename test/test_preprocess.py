@@ -10,6 +10,7 @@ import pytest
 from xmetro_ros import preprocess as pp
 from xmetro_ros.artifacts import Cylinder, Sphere
 from xmetro_ros.geometry import HeadPose
+from xmetro_ros.preprocess import knn as pp_knn
 from xmetro_ros.scan import Scan
 from xmetro_ros.scanner import ScannerModel, ScanSettings
 
@@ -275,7 +276,7 @@ def test_closed_form_eigen_matches_numpy():
     a[:, :, 2] *= rng.uniform(1e-4, 1, (2000, 1))  # from nearly planar to isotropic
     cov = np.einsum("nij,nkj->nik", a, a)
     cols = [cov[:, i, j] for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))]
-    normal, l0, l1, l2 = pp._smallest_eigvec_sym3(*cols)
+    normal, l0, l1, l2 = pp_knn._smallest_eigvec_sym3(*cols)
     w, v = np.linalg.eigh(cov)
     assert np.allclose(np.stack([l0, l1, l2], 1), w, rtol=1e-6, atol=1e-9 * w[:, 2:])
     gap = (w[:, 1] - w[:, 0]) / w[:, 2] > 1e-3  # the eigenvector is defined (up to sign)

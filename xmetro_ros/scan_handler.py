@@ -114,7 +114,8 @@ def warm_up() -> float:
     (machine load) on the very first run of an installation (docs/node.md). Returns the seconds taken."""
     import time
 
-    from . import grid_kernels, scan_stats
+    from . import scan_stats
+    from .preprocess import grid_kernels
 
     t = time.perf_counter()
     grid_kernels.warm_up()

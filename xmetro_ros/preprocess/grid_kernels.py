@@ -21,12 +21,15 @@ a fresh environment compiles (6 s on the lightly loaded machine, ~30 s at load 7
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numba import njit
 
 __all__ = ["box_mean", "grid_normals_planes", "grid_outliers", "kept_normals", "orient_rows", "planes", "warm_up"]
 
-_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}  # numpy float semantics: x / 0 → inf/nan, no raise
+# numpy float semantics: x / 0 → inf/nan, no raise
+_JIT: dict[str, Any] = {"cache": True, "nogil": True, "error_model": "numpy"}
 _F0 = np.float32(0.0)
 _F1 = np.float32(1.0)
 _F2 = np.float32(2.0)
