@@ -83,7 +83,7 @@ PARAMS: tuple[ParamSpec, ...] = (
               "orientation is always evaluated; the answer says when the search was cut short)", 0.1, 600.0),
     ParamSpec("max_processing_time", 5.0, "s", "watchdog: a scan still processing after this long is abandoned "
               "(ERROR TIMEOUT, checked between stages); a worker that does not come back is reported stalled "
-              "(/diagnostics ERROR) and replaced", 0.01, 3600.0),
+              "(/diagnostics ERROR) and replaced", 0.001, 3600.0),
     ParamSpec("working_volume", 1000.0, "m", "half-width of the working volume (cube about the scan frame's origin): "
               "finite points with a larger |x|, |y| or |z| are non-physical, flagged OUT_OF_VOLUME, no prediction",
               1e-3, 1e6),
