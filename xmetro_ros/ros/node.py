@@ -139,6 +139,8 @@ class XmetroNode(Node):
             return SetParametersResult(successful=False, reason=reason)
         ours = {k: v for k, v in changes.items() if k in current}
         self.core.update_values(ours)
+        if "scan_timeout" in ours:
+            self.diag.scan_timeout = float(ours["scan_timeout"])
         if ours:
             self.get_logger().info(f"parameters changed: {ours}")
         return SetParametersResult(successful=True)
