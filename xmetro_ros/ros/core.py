@@ -161,12 +161,11 @@ class XmetroCore:
     def judge(self, msg: PointCloud2, t0: float | None = None, deadline: float | None = None) -> CoreOutput:
         """Judge one cloud; ``t0`` = monotonic receipt time (for processing_latency). Never raises for bad input.
 
-        ``deadline`` (``time.monotonic()`` seconds; default: now + ``max_processing_time``): checked between stages;
-        past it the scan is abandoned with ERROR ``TIMEOUT`` (a stage under way is not interrupted).
+        ``deadline`` (``time.monotonic()`` seconds; None = no bound): checked between stages; past it the scan is
+        abandoned with ERROR ``TIMEOUT`` (a stage under way is not interrupted). The live node passes now +
+        ``max_processing_time``; ``xmetro predict`` passes none, so offline outputs never depend on the machine's speed.
         """
         t0 = time.monotonic() if t0 is None else t0
-        if deadline is None and self.values.get("max_processing_time"):
-            deadline = time.monotonic() + float(self.values["max_processing_time"])
         stamp_ns = stamp_to_ns(msg.header.stamp)
         n = int(msg.width) * int(msg.height)
         entry = self.settings_for(stamp_ns)

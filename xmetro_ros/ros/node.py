@@ -230,7 +230,7 @@ class XmetroNode(Node):
                         self._update_queue_diag()
 
     def _process(self, msg: PointCloud2, t0: float, token: object) -> None:
-        out = self.core.judge(msg, t0)
+        out = self.core.judge(msg, t0, deadline=time.monotonic() + float(self.core.values["max_processing_time"]))
         with self._cv:
             if self._token is not token:
                 return  # abandoned by the watchdog: its scan was already answered TIMEOUT
