@@ -281,11 +281,14 @@ def test_stress_real_node_process():
             dt = time.monotonic() - t0
             print(f"stress: {name}: code {q.error_code} in {dt * 1e3:.0f} ms ({q.message[:80]})")
             assert q.error_code in codes, (name, q.error_code, q.message)
-            if dt > bound_s + 2.0:  # DDS, a busy machine: collect, assert below with the names
-                slow.append(f"{name}: {dt:.1f} s")
+            # the watchdog's worst case for an input that stalls a stage, else a layout / value check (~20-100 ms
+            # here); both with slack for DDS and a busy shared machine
+            limit = bound_s + 5.0 if ScanQuality.ERROR_TIMEOUT in codes else 2.0
+            if dt > limit:
+                slow.append(f"{name}: {dt:.1f} s > {limit:g} s")
             assert proc.proc.poll() is None, f"node died on {name}"
             judge_good()  # the next good scan is processed normally
-        assert not slow, f"answers slower than {bound_s + 2.0:g} s: {slow}"
+        assert not slow, f"answers too slow: {slow}"
         # a burst of 20 big scans, then a good scan: every one accounted for
         q0 = judge_good()
         big = cloud_of(sim_scan(0, radius=27.5))
