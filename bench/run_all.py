@@ -1,4 +1,5 @@
-"""`make bench`: run every benchmark (bench/bench_*.py) one after the other; each writes bench/results/<name>.json.
+"""`make bench`: run every benchmark (bench/bench_*.py: node, dds, bag, preprocess, replay, soak) one after the other;
+each writes bench/results/<name>.json (bench_soak.py: the node's memory soak, ~3 min).
 
 Benchmarks measure side by side in one run and report ratios, since this machine is noisy; they are never tests.
 Pass names to run a subset: `python bench/run_all.py node dds`.

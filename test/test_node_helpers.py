@@ -172,7 +172,16 @@ class NodeClient:
             assert wait_for(lambda: self._find("deviations", stamp) is not None
                             and self._find("corrected", stamp) is not None, TIMEOUT), f"no clouds for {stamp}"
             dev, corr = self._find("deviations", stamp), self._find("corrected", stamp)
+            assert_points_accounted(dev)
         return q, dev, corr
+
+    def assert_all_outputs_accounted(self) -> int:
+        """:func:`assert_points_accounted` over every ``~/deviations`` received so far; returns how many."""
+        with self.lock:
+            devs = list(self.deviations)
+        for d in devs:
+            assert_points_accounted(d)
+        return len(devs)
 
     def diag_mark(self) -> int:
         with self.lock:
@@ -188,6 +197,68 @@ class NodeClient:
             return None
         assert wait_for(lambda: find() is not None, TIMEOUT), f"no /diagnostics with level {level}"
         return find()
+
+
+def assert_points_accounted(dev: PointCloud2) -> None:
+    """The node's output invariant on a ``~/deviations`` cloud: every point has a finite prediction (dx, dy, dz,
+    dnorm) or a flag saying why not — never NaN with flags 0."""
+    from xmetro_ros.ros.cloud import xyz_fields
+
+    _, f = xyz_fields(dev, ["dx", "dy", "dz", "dnorm", "flags"])
+    finite = np.isfinite(f["dx"]) & np.isfinite(f["dy"]) & np.isfinite(f["dz"]) & np.isfinite(f["dnorm"])
+    silent = ~finite & (np.asarray(f["flags"]).astype(np.uint16) == 0)
+    assert not silent.any(), (f"{int(silent.sum())} of {len(silent)} published points have no finite prediction "
+                              f"and flags 0 (stamp {stamp_ns_of(dev)})")
+
+
+def absurd_scan(stamp_ns: int, value: float = 3e38, share: int = 3) -> Scan:
+    """A simulated scan with every ``share``-th finite point set to ``value`` metres on all axes (non-physical)."""
+    sc = sim_scan(stamp_ns)
+    pts = sc.points.reshape(-1, 3).copy()
+    fin = np.flatnonzero(np.isfinite(pts).all(axis=1))
+    pts[fin[::share]] = value * 1e3  # scan points are mm
+    sc.points = pts.reshape(sc.points.shape)
+    return sc
+
+
+def bad_inputs(stamp: Any, stall: bool = True) -> list[tuple[str, PointCloud2, set[int]]]:
+    """A small catalogue of malformed / hostile clouds: (name, cloud, accepted ScanQuality error codes).
+    ``stamp()`` gives a fresh unique stamp (ns) per cloud; ``stall``: include issue 12's stall input (last).
+    Codes are documented in docs/node.md."""
+    f32, i32 = PointField.FLOAT32, PointField.INT32
+    xyz = [("x", 0, f32), ("y", 4, f32), ("z", 8, f32)]
+    rng = np.random.default_rng(0)
+    pts = (np.array([[0.0, 0.0, 0.01]]) + rng.normal(0, 0.001, (60, 3))).astype(np.float32)
+    Q = ScanQuality
+    out: list[tuple[str, PointCloud2, set[int]]] = [
+        ("empty", raw_cloud(xyz, 12, 0, b"", stamp_ns=stamp()), {Q.ERROR_EMPTY_CLOUD}),
+        ("truncated data", raw_cloud(xyz, 12, 60, pts.tobytes()[:-12], stamp_ns=stamp()), {Q.ERROR_BAD_LAYOUT}),
+        ("row_step too small", raw_cloud(xyz, 12, 60, pts.tobytes(), stamp_ns=stamp(), row_step=100),
+         {Q.ERROR_BAD_LAYOUT}),
+        ("point_step below fields", raw_cloud(xyz, 8, 60, bytes(8 * 60), stamp_ns=stamp()), {Q.ERROR_BAD_LAYOUT}),
+        ("unknown datatype", raw_cloud([*xyz[:2], ("z", 8, 99)], 12, 60, pts.tobytes(), stamp_ns=stamp()),
+         {Q.ERROR_BAD_LAYOUT, Q.ERROR_MISSING_FIELD}),
+        ("no z", raw_cloud(xyz[:2], 12, 60, pts.tobytes(), stamp_ns=stamp()), {Q.ERROR_MISSING_FIELD}),
+        ("integer x", raw_cloud([("x", 0, i32), *xyz[1:]], 12, 60, pts.tobytes(), stamp_ns=stamp()),
+         {Q.ERROR_MISSING_FIELD}),
+        ("duplicate y", raw_cloud([*xyz, ("y", 12, f32)], 16, 60, bytes(16 * 60), stamp_ns=stamp()),
+         {Q.ERROR_DUPLICATE_FIELD}),
+        ("all NaN", raw_cloud(xyz, 12, 60, np.full((60, 3), np.nan, np.float32).tobytes(), stamp_ns=stamp()),
+         {Q.ERROR_NO_VALID_POINTS}),
+        ("all 3e38", raw_cloud(xyz, 12, 60, np.full((60, 3), 3e38, np.float32).tobytes(), stamp_ns=stamp()),
+         {Q.ERROR_NO_VALID_POINTS}),
+    ]
+    # big count claims: 65536 x 65536 points in an empty buffer (4.3e9 points: points_received is 64-bit)
+    claim = raw_cloud(xyz, 12, 0, b"", stamp_ns=stamp())
+    claim.width, claim.height, claim.row_step = 65536, 65536, 12 * 65536
+    out.append(("65536 x 65536 claim", claim, {Q.ERROR_BAD_LAYOUT}))
+    # a field claiming count 1,000,000 in a 720-byte cloud (issue 12's stall input): rejected by the layout check,
+    # or, where that check is slow, abandoned by the watchdog
+    if stall:
+        many = raw_cloud(xyz, 12, 60, pts.tobytes(), stamp_ns=stamp())
+        many.fields.append(PointField(name="extra", offset=12, datatype=f32, count=1_000_000))
+        out.append(("field count 1,000,000", many, {Q.ERROR_BAD_LAYOUT, Q.ERROR_TIMEOUT}))
+    return out
 
 
 def cloud_of(scan: Scan) -> PointCloud2:

@@ -129,3 +129,43 @@ def test_errors_and_point_cap(handler, scan):
         assert r.quality["decimated"] and r.quality["verdict"] >= fl.VERDICT_WARN and len(r.flags) == len(keep)
     finally:
         handler.params = old
+
+
+def test_out_of_volume_points_flagged_and_every_point_accounted(handler, scan):
+    """Finite but non-physical coordinates (3e41 mm = 3e38 m, and just past the working volume) are flagged
+    OUT_OF_VOLUME with no prediction; the other points are judged as without them; no NaN prediction with flags 0."""
+    pts = scan.points.reshape(-1, 3).copy()
+    fin = np.flatnonzero(np.isfinite(pts).all(axis=1))
+    absurd = fin[::3]
+    pts[absurd[::2]] = 3e41
+    pts[absurd[1::2], 0] = handler.params.working_volume_mm * 1.001  # one coordinate just outside
+    bad = replace(scan, points=pts.reshape(scan.points.shape))
+    res = handler.process(bad)
+    assert np.all(res.flags[absurd] & fl.FLAG_OUT_OF_VOLUME) and np.isnan(res.deviations[absurd]).all()
+    assert not np.any(res.flags[absurd] & fl.FLAG_INVALID_POINT)  # finite: the flag says which case it is
+    assert res.quality["points_valid"] == len(fin) - len(absurd)
+    assert res.quality["flag_counts"][fl.FLAG_BITS.index(fl.FLAG_OUT_OF_VOLUME)] == len(absurd)
+    silent = ~np.isfinite(res.deviations).all(axis=1) & (res.flags == 0)
+    assert not silent.any()
+    # the rest is judged exactly as if those points had no return
+    nan_pts = pts.copy()
+    nan_pts[absurd] = np.nan
+    ref = handler.process(replace(scan, points=nan_pts.reshape(scan.points.shape)))
+    np.testing.assert_array_equal(res.deviations, ref.deviations)
+    others = np.setdiff1d(np.arange(len(pts)), absurd)
+    np.testing.assert_array_equal(res.flags[others], ref.flags[others])
+    assert np.isfinite(res.quality["mean_abs_error_mm"]).all()
+    # a working volume that excludes every point: NO_VALID_POINTS, saying why
+    handler_small = ScanHandler(handler.model, handler.scanner, replace(handler.params, working_volume_mm=1e-3))
+    with pytest.raises(ScanError) as e:
+        handler_small.process(scan)
+    assert e.value.code == "NO_VALID_POINTS" and "working volume" in str(e.value)
+
+
+def test_deadline_abandons_between_stages(handler, scan):
+    import time
+
+    with pytest.raises(ScanError) as e:
+        handler.process(scan, deadline=time.monotonic() - 1.0)
+    assert e.value.code == "TIMEOUT" and "max_processing_time" in str(e.value)
+    assert handler.process(scan, deadline=time.monotonic() + 600.0).quality["error_code"] == "NONE"

@@ -12,7 +12,10 @@ bit   name                   set when
 16    out_of_domain          a model feature lies outside the model's training range widened by
                              ``domain_margin`` × the range width on each side (ModelSet.domain)
 32    unreliable_normal      normal quality < ``normal_quality_min`` (quality from the normal estimation, 0..1)
-64    invalid_point          x, y or z NaN / Inf (no return) — no prediction for it
+64    invalid_point          x, y or z NaN / Inf (no return) — no prediction for it; also any point whose
+                             prediction is not finite for another reason (a point has a finite prediction or a flag)
+128   out_of_volume          finite x, y, z outside the working volume (|coordinate| > ``working_volume``,
+                             non-physical, e.g. 3e38 m) — treated as no return, no prediction for it
 ====  =====================  =====================================================================================
 
 Verdict (:func:`verdict`), fractions taken over the *valid* (finite) points so that the empty cells of an organized
@@ -42,6 +45,7 @@ __all__ = [
     "FLAG_NAMES",
     "FLAG_OUTLIER",
     "FLAG_OUT_OF_DOMAIN",
+    "FLAG_OUT_OF_VOLUME",
     "FLAG_OVER_TOLERANCE",
     "FLAG_UNRELIABLE_NORMAL",
     "NON_CONFORMING",
@@ -67,11 +71,12 @@ FLAG_OVER_TOLERANCE = 8
 FLAG_OUT_OF_DOMAIN = 16
 FLAG_UNRELIABLE_NORMAL = 32
 FLAG_INVALID_POINT = 64
+FLAG_OUT_OF_VOLUME = 128
 
 FLAG_BITS = (FLAG_OUTLIER, FLAG_GRAZING_INCIDENCE, FLAG_GRAZING_VIEW, FLAG_OVER_TOLERANCE, FLAG_OUT_OF_DOMAIN,
-             FLAG_UNRELIABLE_NORMAL, FLAG_INVALID_POINT)
+             FLAG_UNRELIABLE_NORMAL, FLAG_INVALID_POINT, FLAG_OUT_OF_VOLUME)
 FLAG_NAMES = ("outlier", "grazing_incidence", "grazing_view", "over_tolerance", "out_of_domain",
-              "unreliable_normal", "invalid_point")
+              "unreliable_normal", "invalid_point", "out_of_volume")
 
 VERDICT_OK, VERDICT_WARN, VERDICT_RESCAN, VERDICT_ERROR = 0, 1, 2, 3
 

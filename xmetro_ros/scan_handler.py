@@ -10,6 +10,7 @@ Deviations are predicted errors ``nominal − measured`` per axis, so ``measured
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -19,7 +20,17 @@ from . import flags as fl
 from .scan import Scan
 from .scanner import ScannerModel, SettingsError
 
-__all__ = ["HandlerParams", "ScanError", "ScanHandler", "ScanResult", "cap_points", "decimation_index", "warm_up"]
+__all__ = [
+    "HandlerParams",
+    "ScanError",
+    "ScanHandler",
+    "ScanResult",
+    "cap_points",
+    "check_deadline",
+    "decimation_index",
+    "volume_mask",
+    "warm_up",
+]
 
 # Below this many valid points outlier removal / normals are meaningless.
 _MIN_POINTS_TO_PROCESS = 10
@@ -31,6 +42,32 @@ class ScanError(ValueError):
     def __init__(self, code: str, message: str) -> None:
         super().__init__(message)
         self.code = code
+
+
+def check_deadline(deadline: float | None, stage: str) -> None:
+    """Abandon a scan whose processing passed ``deadline`` (``time.monotonic()`` seconds; None = no bound).
+
+    Called between stages: Python cannot interrupt a running numpy / ONNX Runtime call, so a stage already under
+    way finishes first (see docs/node.md, watchdog).
+
+    Raises:
+        ScanError("TIMEOUT"): past the deadline.
+    """
+    if deadline is not None:
+        now = time.monotonic()
+        if now > deadline:
+            raise ScanError("TIMEOUT", f"processing exceeded max_processing_time by {now - deadline:.3f} s "
+                                       f"(abandoned before {stage})")
+
+
+def volume_mask(points: np.ndarray, half_width_mm: float) -> np.ndarray:
+    """Flat mask of finite points with every |coordinate| > ``half_width_mm`` (outside the working volume)."""
+    p = np.asarray(points).reshape(-1, 3)
+    with np.errstate(invalid="ignore"):
+        out = np.abs(p[:, 0]) > half_width_mm
+        out |= np.abs(p[:, 1]) > half_width_mm
+        out |= np.abs(p[:, 2]) > half_width_mm
+    return out
 
 
 @dataclass(frozen=True)
@@ -45,6 +82,8 @@ class HandlerParams:
         thresholds: verdict thresholds.
         max_points, cloud_overflow: cap on width × height and what to do above it ("reject" | "decimate").
         outlier_nb_neighbors, outlier_std_ratio: statistical outlier removal.
+        working_volume_mm: half-width of the working volume (axis-aligned cube about the scan frame's origin), mm;
+            finite points outside it are non-physical: flagged OUT_OF_VOLUME and processed as no return.
     """
 
     tolerance_mm: float = 0.1
@@ -57,6 +96,7 @@ class HandlerParams:
     cloud_overflow: str = "reject"
     outlier_nb_neighbors: int = 20
     outlier_std_ratio: float = 2.0
+    working_volume_mm: float = 1_000_000.0
 
     @classmethod
     def from_node_values(cls, v: dict[str, Any]) -> HandlerParams:
@@ -77,6 +117,7 @@ class HandlerParams:
             cloud_overflow=str(v["cloud_overflow"]),
             outlier_nb_neighbors=int(v["outlier_nb_neighbors"]),
             outlier_std_ratio=float(v["outlier_std_ratio"]),
+            working_volume_mm=float(v.get("working_volume", 1000.0)) * 1e3,
         )
 
 
@@ -175,12 +216,16 @@ class ScanHandler:
 
         return PreprocessConfig(nb_neighbors=self.params.outlier_nb_neighbors, std_ratio=self.params.outlier_std_ratio)
 
-    def process(self, scan: Scan, settings_defaulted: bool = False) -> ScanResult:
-        """Judge one scan (see the module docstring).
+    def process(self, scan: Scan, settings_defaulted: bool = False, deadline: float | None = None) -> ScanResult:
+        """Judge one scan (see the module docstring). ``deadline``: ``time.monotonic()`` after which the scan is
+        abandoned (checked between stages, :func:`check_deadline`).
+
+        Every point gets either a finite prediction or a flag saying why not (OUT_OF_VOLUME, INVALID_POINT,
+        OUTLIER): non-physical coordinates never come out as NaN with flags 0.
 
         Raises:
             ScanError: with the ScanQuality error code (TOO_MANY_POINTS, NO_VALID_POINTS, INVALID_SETTINGS,
-                MISSING_INPUT_FIELD, MODEL_UNAVAILABLE).
+                MISSING_INPUT_FIELD, MODEL_UNAVAILABLE, TIMEOUT).
         """
         from .features import FeatureContext, MissingFieldError, compute_features
         from .preprocess import PreprocessError, prepare_scan
@@ -196,9 +241,19 @@ class ScanHandler:
         n = int(np.prod(scan.shape))
         if n == 0:
             raise ScanError("EMPTY_CLOUD", "the scan has no points")
-        valid = scan.valid_mask()
+        finite_xyz = scan.valid_mask()
+        outside = volume_mask(scan.points, p.working_volume_mm)
+        if outside.any():
+            # Non-physical points are processed as no return (NaN), so no stage sees them (3e38 m would overflow).
+            pts = np.array(scan.points, dtype=np.float64)
+            pts.reshape(-1, 3)[outside] = np.nan
+            scan = replace(scan, points=pts)
+        valid = finite_xyz & ~outside
         n_valid = int(valid.sum())
         if n_valid == 0:
+            if outside.any():
+                raise ScanError("NO_VALID_POINTS", f"all {n} points are NaN/Inf or outside the working volume "
+                                                   f"(|coordinate| > {p.working_volume_mm / 1e3:g} m)")
             raise ScanError("NO_VALID_POINTS", f"all {n} points are NaN/Inf")
         if n_valid < _MIN_POINTS_TO_PROCESS:
             raise ScanError("NO_VALID_POINTS", f"only {n_valid} finite points (< {_MIN_POINTS_TO_PROCESS})")
@@ -207,24 +262,29 @@ class ScanHandler:
             raise ScanError("MISSING_INPUT_FIELD", f"the model needs per-point field(s) {', '.join(missing)} "
                                                    f"that the cloud lacks (has: {', '.join(sorted(scan.fields))})")
 
+        check_deadline(deadline, "pre-processing")
         try:
             prepared = prepare_scan(scan, self.preprocess_config(), scanner=self.scanner)
         except PreprocessError as e:
             raise ScanError("NO_VALID_POINTS", f"pre-processing failed: {e}") from e
+        check_deadline(deadline, "features")
         ctx = FeatureContext.from_prepared(prepared)
         try:
             X = compute_features(list(self.model.feature_names), ctx, dtype=np.float32)
         except MissingFieldError as e:
             raise ScanError("MISSING_INPUT_FIELD", str(e)) from e
+        check_deadline(deadline, "inference")
         # Rows with a non-finite feature get NaN from the model (and are kept out of PointNet sets).
         pred = np.asarray(self.model.predict(X), dtype=np.float64)
+        check_deadline(deadline, "flags")
         finite = np.isfinite(pred[:, 0]) & np.isfinite(pred[:, 1]) & np.isfinite(pred[:, 2])
 
         idx = np.asarray(prepared.index, dtype=np.int64)
         dev = np.full((n, 3), np.nan, dtype=np.float64)
         dev[idx] = pred
         flags = np.zeros(n, dtype=np.uint16)
-        flags[~valid] |= fl.FLAG_INVALID_POINT
+        flags[~finite_xyz] |= fl.FLAG_INVALID_POINT
+        flags[outside] |= fl.FLAG_OUT_OF_VOLUME
         flags[np.asarray(prepared.outlier, dtype=np.int64)] |= fl.FLAG_OUTLIER
         g = prepared.geometry
         # N·L and N·V are the features' shared intermediates (already computed when the model uses Inc/ViewAng).
@@ -237,6 +297,10 @@ class ScanHandler:
         kept_flags[dnorm > p.tolerance_mm] |= fl.FLAG_OVER_TOLERANCE
         kept_flags[~finite] |= fl.FLAG_INVALID_POINT
         flags[idx] |= kept_flags
+        # The invariant, whatever a stage did: no point with a non-finite prediction and flags 0.
+        silent = (flags == 0) & ~(np.isfinite(dev[:, 0]) & np.isfinite(dev[:, 1]) & np.isfinite(dev[:, 2]))
+        if silent.any():
+            flags[silent] |= fl.FLAG_INVALID_POINT
 
         quality = self.summarize(flags, pred, n_valid, settings_defaulted, kept is not None, n, finite=finite)
         return ScanResult(deviations=dev, flags=flags, quality=quality, prepared=prepared, features=X,

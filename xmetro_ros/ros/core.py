@@ -20,7 +20,7 @@ from sensor_msgs.msg import PointCloud2
 
 from ..geometry import HeadPose
 from ..msg import ScannerSettings, ScanQuality
-from ..scan_handler import HandlerParams, ScanError, ScanHandler
+from ..scan_handler import HandlerParams, ScanError, ScanHandler, check_deadline
 from ..scan_history import JudgedScan, ScanHistory, ServiceError, axes_from_mask, explain_rows, select_rows
 from ..scanner import ScannerModel, ScanSettings, SettingsError
 from ..srv import Explain, RecommendSettings
@@ -163,8 +163,22 @@ class XmetroCore:
         q.processing_latency = time.monotonic() - t0
         return CoreOutput(q, None, None, f"scan rejected ({code}): {message}")
 
-    def judge(self, msg: PointCloud2, t0: float | None = None) -> CoreOutput:
-        """Judge one cloud; ``t0`` = monotonic receipt time (for processing_latency). Never raises for bad input."""
+    def unjudged(self, msg: PointCloud2, code: str, message: str, t0: float | None = None) -> CoreOutput:
+        """An ERROR answer for a scan that is not (or no longer) processed: dropped by the node's queue
+        (``QUEUE_OVERFLOW``) or abandoned by the watchdog (``TIMEOUT``). Cheap: no decoding."""
+        t0 = time.monotonic() if t0 is None else t0
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        entry = self.settings_for(stamp_ns)
+        q = new_quality(msg.header, self.model_id, entry.msg if entry is not None else None, entry is None)
+        return self._error(q, code, message, int(msg.width) * int(msg.height), t0)
+
+    def judge(self, msg: PointCloud2, t0: float | None = None, deadline: float | None = None) -> CoreOutput:
+        """Judge one cloud; ``t0`` = monotonic receipt time (for processing_latency). Never raises for bad input.
+
+        ``deadline`` (``time.monotonic()`` seconds; None = no bound): checked between stages; past it the scan is
+        abandoned with ERROR ``TIMEOUT`` (a stage under way is not interrupted). The live node passes now +
+        ``max_processing_time``; ``xmetro predict`` passes none, so offline outputs never depend on the machine's speed.
+        """
         t0 = time.monotonic() if t0 is None else t0
         stamp_ns = stamp_to_ns(msg.header.stamp)
         n = int(msg.width) * int(msg.height)
@@ -177,6 +191,7 @@ class XmetroCore:
             if self.model is None:
                 return self._error(q, "MODEL_UNAVAILABLE", self.degraded, n, t0)
             validate_cloud(msg, require_valid_points=True)
+            check_deadline(deadline, "decoding")
             if entry.error:
                 return self._error(q, "INVALID_SETTINGS", f"settings stamped {entry.stamp_ns} ns are invalid: "
                                                           f"{entry.error}", n, t0)
@@ -186,7 +201,8 @@ class XmetroCore:
             if entry.settings is None or entry.pose is None:  # only invalid entries lack them (handled above)
                 return self._error(q, "INVALID_SETTINGS", "settings without values", n, t0)
             scan = cloud_to_scan(msg, entry.settings, entry.pose, self.scanner.id)
-            res = self.handler.process(scan, settings_defaulted=defaulted)
+            res = self.handler.process(scan, settings_defaulted=defaulted, deadline=deadline)
+            check_deadline(deadline, "encoding the outputs")
         except CloudFormatError as e:
             return self._error(q, e.code, str(e), n, t0)
         except ScanError as e:

@@ -1,12 +1,21 @@
-"""Health of ``xmetro_node`` on ``/diagnostics`` (diagnostic_msgs/DiagnosticArray): counters, rates, latency.
+"""Health of ``xmetro_node`` on ``/diagnostics`` (diagnostic_msgs/DiagnosticArray), following diagnostic_updater's
+conventions: one DiagnosticStatus named ``"<node name>: scan processing"`` (the node's actual name, remaps included),
+``hardware_id`` = the scanner id, key/value pairs for the counters, published every ``diagnostics_period`` and at
+once when the level changes.
 
-One DiagnosticStatus ``xmetro_node: scan processing`` (hardware_id = scanner id). Level:
-- ERROR: no usable model (degraded start), or the last scan could not be processed (ScanQuality ERROR);
-- WARN: the last scan was judged WARN or RESCAN, or its settings were defaulted;
-- OK otherwise (also before the first scan: "waiting for scans").
-Values: model_id, degraded reason, scans received / processed / failed / dropped, scan rate (Hz, last 10 s),
-latency (last and p50 / max over the last 100 scans, ms), last verdict and message. The node publishes it every
-``diagnostics_period`` and at once when the level changes.
+Level (the most severe reason wins; the message lists the reasons, most severe first):
+
+- ERROR: no usable model (degraded start); the worker is stalled (a scan past ``max_processing_time`` that did not
+  come back, or an abandoned worker thread still running); the last scan could not be processed (ScanQuality
+  ERROR); scans arrive but no ScannerSettings ever did (every scan runs on the configured defaults);
+- WARN: no scan for ``scan_timeout`` seconds (stale input: a dead scanner or a lost connection; also before the
+  first scan); the last scan was judged WARN or RESCAN, or its settings were defaulted;
+- OK otherwise.
+
+Values: node-level scan accounting (``scans_received`` = ``scans_judged`` + ``scans_dropped`` + ``scans_queued`` +
+``scans_in_progress``; ``scans_lost`` before the callback), frequency (diagnostic_updater's FrequencyStatus keys:
+events in window, events since startup, duration of window, actual frequency), latency (last and p50 / max over
+the last 100 scans, ms), the watchdog's counters, the last verdict and message.
 """
 
 from __future__ import annotations
@@ -19,40 +28,96 @@ from typing import Any
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
-__all__ = ["STATUS_NAME", "DiagnosticsState"]
+__all__ = ["FREQUENCY_WINDOW_S", "TASK_NAME", "DiagnosticsState", "status_name"]
 
-STATUS_NAME = "xmetro_node: scan processing"
-_VERDICT_LEVEL = {0: DiagnosticStatus.OK, 1: DiagnosticStatus.WARN, 2: DiagnosticStatus.WARN,
-                  3: DiagnosticStatus.ERROR}
+TASK_NAME = "scan processing"
+FREQUENCY_WINDOW_S = 10.0
+OK, WARN, ERROR = 0, 1, 2
+_VERDICT_LEVEL = {0: OK, 1: WARN, 2: WARN, 3: ERROR}
+
+
+def status_name(node_name: str) -> str:
+    """diagnostic_updater's status name: ``"<node name>: <task>"``."""
+    return f"{node_name}: {TASK_NAME}"
 
 
 class DiagnosticsState:
-    """Thread-safe counters of the node, turned into a DiagnosticArray by :meth:`build`."""
+    """Thread-safe counters and health of the node, turned into a DiagnosticArray by :meth:`build`.
 
-    def __init__(self, hardware_id: str, model_id: str, degraded: str = "") -> None:
+    Args:
+        node_name: the node's name (``Node.get_name()``, after remapping).
+        hardware_id: the scanner id.
+        model_id: the model set's id ("" when degraded).
+        degraded: why the node runs without a model ("" = it has one).
+        scan_timeout: seconds without a scan before WARN (stale input).
+    """
+
+    def __init__(self, node_name: str, hardware_id: str, model_id: str, degraded: str = "",
+                 scan_timeout: float = 5.0) -> None:
+        self.name = status_name(node_name)
         self.hardware_id = hardware_id
         self.model_id = model_id
         self.degraded = degraded
+        self.scan_timeout = float(scan_timeout)
         self.received = 0
         self.processed = 0
         self.failed = 0
         self.dropped = 0
+        self.lost = 0
+        self.dds_lost_events = 0
+        self.timeouts = 0
+        self.workers_abandoned = 0
+        self.settings_received = 0
+        self.queued = 0
+        self.in_progress = 0
+        self.stalled = ""                   # set by the node's supervisor: why the worker is considered stalled
         self.last_verdict: int | None = None
         self.last_message = "waiting for scans"
         self.last_defaulted = False
+        self._start = time.monotonic()
+        self._last_scan: float | None = None
         self._latencies: deque[float] = deque(maxlen=100)
-        self._times: deque[float] = deque(maxlen=200)
+        self._times: deque[float] = deque(maxlen=1000)
         self._lock = threading.Lock()
         self.published_level: int | None = None
 
+    # ------------------------------------------------------------------ events
     def on_received(self) -> None:
         with self._lock:
             self.received += 1
-            self._times.append(time.monotonic())
+            now = time.monotonic()
+            self._last_scan = now
+            self._times.append(now)
 
     def on_dropped(self) -> None:
         with self._lock:
             self.dropped += 1
+
+    def on_lost(self, n: int, dds_event: bool = False) -> None:
+        """``n`` scans lost before the callback (sequence-number gaps; ``dds_event``: a DDS sample-lost event,
+        counted apart since the gaps already include what DDS reports)."""
+        with self._lock:
+            if dds_event:
+                self.dds_lost_events += int(n)
+            else:
+                self.lost += int(n)
+
+    def on_settings(self) -> None:
+        with self._lock:
+            self.settings_received += 1
+
+    def on_queue(self, queued: int, in_progress: int) -> None:
+        with self._lock:
+            self.queued, self.in_progress = int(queued), int(in_progress)
+
+    def on_timeout(self, abandoned_worker: bool = False) -> None:
+        with self._lock:
+            self.timeouts += 1
+            self.workers_abandoned += int(abandoned_worker)
+
+    def set_stalled(self, reason: str) -> None:
+        with self._lock:
+            self.stalled = reason
 
     def on_result(self, verdict: int, message: str, latency_s: float, defaulted: bool) -> None:
         with self._lock:
@@ -65,56 +130,85 @@ class DiagnosticsState:
             self.last_defaulted = defaulted
             self._latencies.append(latency_s)
 
-    def level(self) -> int:
+    def counters(self) -> dict[str, int]:
+        """The scan accounting now: received, judged, dropped, lost."""
+        with self._lock:
+            return {"scans_received": self.received, "scans_judged": self.processed + self.failed,
+                    "scans_dropped": self.dropped, "scans_lost": self.lost}
+
+    # ------------------------------------------------------------------ level
+    def _reasons(self, now: float) -> list[tuple[int, str]]:
+        """(level, reason) pairs, unsorted; caller holds the lock."""
+        out: list[tuple[int, str]] = []
         if self.degraded:
-            return _as_int(DiagnosticStatus.ERROR)
-        if self.last_verdict is None:
-            return _as_int(DiagnosticStatus.OK)
-        lvl = _as_int(_VERDICT_LEVEL[self.last_verdict])
-        if self.last_defaulted:
-            lvl = max(lvl, _as_int(DiagnosticStatus.WARN))
-        return lvl
+            out.append((ERROR, f"degraded: {self.degraded}"))
+        if self.stalled:
+            out.append((ERROR, self.stalled))
+        if self.received and not self.settings_received:
+            out.append((ERROR, "no ScannerSettings ever arrived: every scan runs on the configured defaults"))
+        since = now - (self._last_scan if self._last_scan is not None else self._start)
+        if since > self.scan_timeout:
+            what = "no scan for" if self._last_scan is not None else "no scan received in"
+            out.append((WARN, f"stale: {what} {since:.1f} s (scan_timeout {self.scan_timeout:g} s)"))
+        if self.last_verdict is not None:
+            lvl = _VERDICT_LEVEL[self.last_verdict]
+            if self.last_defaulted:
+                lvl = max(lvl, WARN)
+            out.append((lvl, self.last_message))
+        return out
+
+    def level(self) -> int:
+        with self._lock:
+            return max((lv for lv, _ in self._reasons(time.monotonic())), default=OK)
 
     def build(self, stamp: Any) -> DiagnosticArray:
         """The DiagnosticArray now (``stamp``: builtin_interfaces/Time)."""
         with self._lock:
             lat = np.asarray(self._latencies, dtype=float) * 1e3
             now = time.monotonic()
-            recent = [t for t in self._times if now - t <= 10.0]
-            rate = (len(recent) - 1) / (recent[-1] - recent[0]) if len(recent) > 1 and recent[-1] > recent[0] \
-                else 0.0
-            lvl = self.level()
-            if self.degraded:
-                msg = f"degraded: {self.degraded}"
-            else:
-                msg = self.last_message
+            reasons = sorted(self._reasons(now), key=lambda r: -r[0])
+            lvl = reasons[0][0] if reasons else OK
+            shown = [r for lv, r in reasons if lv == lvl] if lvl > OK else [r for _, r in reasons[:1]]
+            msg = "; ".join(dict.fromkeys(shown)) or self.last_message
+            window = min(FREQUENCY_WINDOW_S, now - self._start)
+            events = sum(1 for t in self._times if now - t <= FREQUENCY_WINDOW_S)
             values = {
                 "model_id": self.model_id,
                 "degraded": self.degraded or "no",
-                "scans_received": str(self.received),
-                "scans_processed": str(self.processed),
-                "scans_failed": str(self.failed),
-                "scans_dropped": str(self.dropped),
-                "scan_rate_hz": f"{rate:.3f}",
+                "scans_received": self.received,
+                "scans_judged": self.processed + self.failed,
+                "scans_processed": self.processed,
+                "scans_failed": self.failed,
+                "scans_dropped": self.dropped,
+                "scans_queued": self.queued,
+                "scans_in_progress": self.in_progress,
+                "scans_lost": self.lost,
+                "dds_message_lost_events": self.dds_lost_events,
+                "scans_timed_out": self.timeouts,
+                "workers_abandoned": self.workers_abandoned,
+                "settings_received": self.settings_received,
+                "Events in window": events,
+                "Events since startup": self.received,
+                "Duration of window (s)": f"{window:.3f}",
+                "Actual frequency (Hz)": f"{events / window:.3f}" if window > 0 else "0.000",
+                "seconds_since_last_scan": f"{now - self._last_scan:.3f}" if self._last_scan is not None else "never",
+                "scan_timeout_s": f"{self.scan_timeout:g}",
                 "latency_last_ms": f"{lat[-1]:.1f}" if len(lat) else "n/a",
                 "latency_p50_ms": f"{np.median(lat):.1f}" if len(lat) else "n/a",
                 "latency_max_ms": f"{lat.max():.1f}" if len(lat) else "n/a",
                 "last_verdict": ("OK", "WARN", "RESCAN", "ERROR")[self.last_verdict]
                 if self.last_verdict is not None else "none",
                 "settings_defaulted": str(self.last_defaulted).lower(),
+                "worker_stalled": self.stalled or "no",
             }
-        st = DiagnosticStatus(level=_level_value(lvl), name=STATUS_NAME, message=msg[:500],
+        st = DiagnosticStatus(level=_level_value(lvl), name=self.name, message=msg[:500],
                               hardware_id=self.hardware_id)
-        st.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        st.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         arr = DiagnosticArray()
         arr.header.stamp = stamp
         arr.status = [st]
         self.published_level = lvl
         return arr
-
-
-def _as_int(v: Any) -> int:
-    return v[0] if isinstance(v, (bytes, bytearray)) else int(v)
 
 
 def _level_value(lvl: int) -> Any:

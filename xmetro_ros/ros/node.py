@@ -13,9 +13,15 @@ Topics (names relative to the node; ``~`` = the node's private namespace):
   ``/diagnostics`` (DiagnosticArray, every ``diagnostics_period`` and at once on a level change).
 - services ``~/explain`` (Explain.srv), ``~/recommend_settings`` (RecommendSettings.srv).
 
-Processing runs in a worker thread fed by a bounded queue (``queue_depth``; oldest dropped and counted when full),
-so services and parameter changes stay responsive whatever the executor. The computation itself is
-:class:`XmetroCore` (no DDS), which ``xmetro predict`` can use offline to produce the very same messages.
+Processing runs in a worker thread fed by a bounded queue (``queue_depth``; the oldest is dropped, counted and
+answered ERROR QUEUE_OVERFLOW when full), so services and parameter changes stay responsive whatever the executor.
+Watchdog: a scan past ``max_processing_time`` is abandoned at the next stage boundary (ERROR TIMEOUT); a worker that
+does not come back within twice that bound is abandoned (its scan answered TIMEOUT, its late result discarded) and
+replaced by a fresh worker — at most one abandoned thread at a time, since Python cannot kill one; /diagnostics is
+ERROR meanwhile. Every scan is accounted for (ScanQuality and /diagnostics counters): received = judged + dropped +
+queued + in progress; scans lost before the callback are counted from gaps in each publisher's sequence numbers.
+The computation itself is :class:`XmetroCore` (no DDS), which ``xmetro predict`` can use offline to produce the very
+same messages.
 """
 
 from __future__ import annotations
@@ -23,13 +29,14 @@ from __future__ import annotations
 import os
 import threading
 import time
-from collections import deque
+from collections import OrderedDict, deque
 from typing import Any
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
@@ -87,7 +94,8 @@ class XmetroNode(Node):
         log = self.get_logger()
         if self.core.degraded:
             log.error(f"starting DEGRADED: {self.core.degraded}; scans get ERROR MODEL_UNAVAILABLE, services fail")
-        self.diag = DiagnosticsState(self.core.scanner.id, self.core.model_id, self.core.degraded)
+        self.diag = DiagnosticsState(self.get_name(), self.core.scanner.id, self.core.model_id, self.core.degraded,
+                                     scan_timeout=float(values["scan_timeout"]))
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self._work_group = MutuallyExclusiveCallbackGroup()
@@ -98,7 +106,8 @@ class XmetroNode(Node):
         self.pub_quality = self.create_publisher(ScanQuality, "~/quality", output_qos())
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", output_qos())
         self.sub_scan = self.create_subscription(PointCloud2, "scan", self._on_scan,
-                                                 scan_qos(values["reliability"]), callback_group=self._work_group)
+                                                 scan_qos(values["reliability"]), callback_group=self._work_group,
+                                                 event_callbacks=self._scan_event_callbacks())
         self.sub_settings = self.create_subscription(ScannerSettings, "scanner_settings", self._on_settings,
                                                      settings_qos(), callback_group=self._work_group)
         self.srv_explain = self.create_service(Explain, "~/explain", self._on_explain,
@@ -110,8 +119,13 @@ class XmetroNode(Node):
         self._cv = threading.Condition()
         self._stop = False
         self._diag_lock = threading.Lock()
-        self._worker = threading.Thread(target=self._work, name="xmetro-worker", daemon=True)
-        self._worker.start()
+        # Watchdog state (under self._cv): the scan in processing (start, msg, t0), the live worker's token, abandoned
+        # worker threads still running; last sequence number seen per publisher (loss accounting).
+        self._busy: tuple[float, PointCloud2, float] | None = None
+        self._token: object = object()
+        self._abandoned: list[threading.Thread] = []
+        self._last_seq: OrderedDict[bytes, int] = OrderedDict()
+        self._worker = self._start_worker()
         self.timer_diag = self.create_timer(float(values["diagnostics_period"]), self._publish_diag,
                                             callback_group=self._srv_group)
         self._publish_diag()
@@ -127,62 +141,165 @@ class XmetroNode(Node):
             return SetParametersResult(successful=False, reason=reason)
         ours = {k: v for k, v in changes.items() if k in current}
         self.core.update_values(ours)
+        if "scan_timeout" in ours:
+            self.diag.scan_timeout = float(ours["scan_timeout"])
         if ours:
             self.get_logger().info(f"parameters changed: {ours}")
         return SetParametersResult(successful=True)
 
     def _on_settings(self, msg: ScannerSettings) -> None:
         err = self.core.add_settings(msg)
+        self.diag.on_settings()
         if err:
             self.get_logger().error(f"invalid ScannerSettings stamped {stamp_to_ns(msg.header.stamp)} ns: {err}")
 
-    def _on_scan(self, msg: PointCloud2) -> None:
+    def _scan_event_callbacks(self) -> SubscriptionEventCallbacks:
+        # DDS sample-lost events (rmw_fastrtps reports none for a reader's keep-last history overflow: the sequence
+        # gaps below count those); shown apart on /diagnostics.
+        return SubscriptionEventCallbacks(
+            message_lost=lambda ev: self.diag.on_lost(int(ev.total_count_change), dds_event=True))
+
+    def _count_gaps(self, info: Any) -> None:
+        """Scans lost before the callback: gaps in the publisher's sequence numbers since its last received scan.
+        A publisher's first received scan sets its baseline (earlier ones may predate the subscription)."""
+        try:
+            seq = info.get("publication_sequence_number")
+            gid = info.get("publisher_gid")
+            key = bytes(gid["data"]) if gid else b""
+        except (AttributeError, KeyError, TypeError):
+            return
+        if seq is None or not key:
+            return
+        last = self._last_seq.get(key)
+        if last is not None and seq > last + 1:
+            self.diag.on_lost(seq - last - 1)
+        if last is None or seq > last:
+            self._last_seq[key] = int(seq)
+            self._last_seq.move_to_end(key)
+            while len(self._last_seq) > 256:  # bounded: publishers come and go
+                self._last_seq.popitem(last=False)
+
+    def _on_scan(self, msg: PointCloud2, info: Any) -> None:
         t0 = time.monotonic()
+        self._count_gaps(info)
         self.diag.on_received()
+        dropped = None
         with self._cv:
             if len(self._queue) >= self._qmax:
-                self._queue.popleft()
+                dropped = self._queue.popleft()
                 self.diag.on_dropped()
-                self.get_logger().warning(f"processing queue full ({self._qmax}): oldest scan dropped")
             self._queue.append((msg, t0))
+            self._update_queue_diag()
             self._cv.notify()
+        if dropped is not None:
+            text = f"the node's processing queue was full ({self._qmax}): scan dropped unjudged"
+            self.get_logger().warning(f"{text} (stamp {stamp_to_ns(dropped[0].header.stamp)} ns)")
+            self._publish_quality(self.core.unjudged(dropped[0], "QUEUE_OVERFLOW", text, dropped[1]).quality)
 
-    def _work(self) -> None:
+    def _update_queue_diag(self) -> None:
+        """Caller holds self._cv."""
+        self.diag.on_queue(len(self._queue), int(self._busy is not None))
+
+    def _start_worker(self) -> threading.Thread:
+        with self._cv:
+            token = object()
+            self._token = token
+            t = threading.Thread(target=self._work, args=(token,), name="xmetro-worker", daemon=True)
+            t.start()
+            return t
+
+    def _work(self, token: object) -> None:
         while True:
             with self._cv:
-                while not self._queue and not self._stop:
+                while not self._queue and not self._stop and self._token is token:
                     self._cv.wait(0.5)
-                if self._stop:
+                if self._stop or self._token is not token:
                     return
                 msg, t0 = self._queue.popleft()
+                self._busy = (time.monotonic(), msg, t0)
+                self._update_queue_diag()
             try:
-                self._process(msg, t0)
+                self._process(msg, t0, token)
             except Exception as e:
                 try:
                     self.get_logger().error(f"unexpected failure while publishing: {type(e).__name__}: {e}")
                 except Exception:
                     return
+            finally:
+                with self._cv:
+                    if self._token is token:
+                        self._busy = None
+                        self._update_queue_diag()
 
-    def _process(self, msg: PointCloud2, t0: float) -> None:
-        out = self.core.judge(msg, t0)
+    def _process(self, msg: PointCloud2, t0: float, token: object) -> None:
+        out = self.core.judge(msg, t0, deadline=time.monotonic() + float(self.core.values["max_processing_time"]))
+        with self._cv:
+            if self._token is not token:
+                return  # abandoned by the watchdog: its scan was already answered TIMEOUT
+            self._busy = None
+            self._update_queue_diag()
         q = out.quality
         if out.deviations is not None:
             self.pub_dev.publish(out.deviations)
             self.pub_corr.publish(out.corrected)
         q.processing_latency = time.monotonic() - t0
-        self.pub_quality.publish(q)
         if q.verdict == ScanQuality.VERDICT_ERROR:
             self.get_logger().error(out.log)
         elif q.settings_defaulted:
             self.get_logger().warning(out.log)
         else:
             self.get_logger().debug(out.log)
+        if q.error_code == ScanQuality.ERROR_TIMEOUT:
+            self.diag.on_timeout()
+        self._answer(q)
+
+    def _answer(self, q: ScanQuality) -> None:
+        """Count a judged scan, publish its quality (with the counters) and /diagnostics on a level change."""
         before = self.diag.published_level
         self.diag.on_result(int(q.verdict), q.message, q.processing_latency, bool(q.settings_defaulted))
+        self._publish_quality(q)
         if self.diag.level() != before:
             self._publish_diag()
 
+    def _publish_quality(self, q: ScanQuality) -> None:
+        for k, v in self.diag.counters().items():
+            setattr(q, k, v)
+        self.pub_quality.publish(q)
+
+    def _supervise(self) -> None:
+        """Watchdog supervisor (diagnostics timer): flag a scan past ``max_processing_time``; abandon and replace a
+        worker past twice the bound (at most one abandoned thread alive: Python cannot kill it)."""
+        bound = float(self.core.values["max_processing_time"])
+        now = time.monotonic()
+        abandoned = None
+        with self._cv:
+            self._abandoned = [t for t in self._abandoned if t.is_alive()]
+            busy = self._busy
+            reason = ""
+            if busy is not None and now - busy[0] > bound:
+                stamp = stamp_to_ns(busy[1].header.stamp)
+                reason = (f"worker stalled: scan stamped {stamp} ns processing for {now - busy[0]:.1f} s "
+                          f"> max_processing_time {bound:g} s")
+                if now - busy[0] > 2 * bound and not self._abandoned and not self._stop:
+                    abandoned = busy
+                    self._abandoned.append(self._worker)
+                    self._busy = None
+                    self._worker = self._start_worker()
+                    self._update_queue_diag()
+            if self._abandoned:
+                reason = "; ".join(x for x in (reason, f"{len(self._abandoned)} abandoned worker thread(s) still "
+                                               "running (Python cannot stop one; its result will be discarded)") if x)
+        self.diag.set_stalled(reason)
+        if abandoned is not None:
+            start, msg, t0 = abandoned
+            text = (f"processing exceeded max_processing_time {bound:g} s: worker abandoned after "
+                    f"{now - start:.1f} s, scan answered unjudged")
+            self.get_logger().error(f"watchdog: {text} (stamp {stamp_to_ns(msg.header.stamp)} ns)")
+            self.diag.on_timeout(abandoned_worker=True)
+            self._answer(self.core.unjudged(msg, "TIMEOUT", text, t0).quality)
+
     def _publish_diag(self) -> None:
+        self._supervise()
         with self._diag_lock:
             try:
                 self.pub_diag.publish(self.diag.build(self.get_clock().now().to_msg()))

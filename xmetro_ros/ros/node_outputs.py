@@ -103,8 +103,8 @@ def cdr_header(raw: bytes, cloud: bool = False) -> tuple[int, str, int]:
     return int(sec) * 1_000_000_000 + int(nsec), frame, points
 
 
-# ScanQuality fields that are not a function of the input (timing).
-_SKIP_QUALITY = {"processing_latency"}
+# ScanQuality fields that are not a function of the input (timing; the node's cumulative scan accounting).
+_SKIP_QUALITY = {"processing_latency", "scans_received", "scans_judged", "scans_dropped", "scans_lost"}
 
 
 @dataclass(frozen=True)

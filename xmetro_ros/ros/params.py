@@ -86,6 +86,14 @@ PARAMS: tuple[ParamSpec, ...] = (
               "less of the region than min(this, current coverage)", 0.0, 1.0),
     ParamSpec("recommend_max_seconds", 10.0, "s", "time budget of one ~/recommend_settings search (the current "
               "orientation is always evaluated; the answer says when the search was cut short)", 0.1, 600.0),
+    ParamSpec("max_processing_time", 5.0, "s", "watchdog: a scan still processing after this long is abandoned "
+              "(ERROR TIMEOUT, checked between stages); a worker that does not come back is reported stalled "
+              "(/diagnostics ERROR) and replaced", 0.001, 3600.0),
+    ParamSpec("working_volume", 1000.0, "m", "half-width of the working volume (cube about the scan frame's origin): "
+              "finite points with a larger |x|, |y| or |z| are non-physical, flagged OUT_OF_VOLUME, no prediction",
+              1e-3, 1e6),
+    ParamSpec("scan_timeout", 5.0, "s", "/diagnostics WARN when no scan arrived for this long (stale input: a "
+              "dead scanner is visible)", 0.1, 3600.0),
     ParamSpec("diagnostics_period", 1.0, "s", "period of /diagnostics (also published at once on a level change)",
               0.05, 60.0, read_only=True),
 )
