@@ -10,6 +10,9 @@ NETNS := tools/netns_run
 PYTEST_ARGS ?=
 # Small (N,3)@(3,3) products are ~100x slower with OpenBLAS's threads on a busy 2-core machine.
 export OPENBLAS_NUM_THREADS := 1
+# Localhost-only DDS is an opt-in of our tests, demo and benchmarks (the shipped node honours the caller's DDS
+# environment): every process started from here, and its children, applies it (xmetro_ros/ros/dds_env.py).
+export XMETRO_LOCALHOST_ONLY := 1
 
 .PHONY: setup lint test demo bench clean
 

@@ -113,6 +113,12 @@ class XmetroCore:
             err = str(e)
         entry = SettingsEntry(stamp_to_ns(msg.header.stamp), msg, settings, pose, scanner_id, msg.header.frame_id, err)
         with self._settings_lock:
+            # The same message can arrive twice (the node's transient-local and volatile subscriptions both match
+            # a transient-local publisher): one entry per (frame, stamp), the latest received wins.
+            for i, e in enumerate(self._settings):
+                if e.stamp_ns == entry.stamp_ns and e.frame_id == entry.frame_id:
+                    del self._settings[i]
+                    break
             self._settings.append(entry)
             ordered = sorted(self._settings, key=lambda e: e.stamp_ns)
             self._settings.clear()
