@@ -70,7 +70,7 @@ def test_best_effort_scans_and_volatile_settings_are_used(default_node):
 
 def test_late_joiner_gets_latched_settings(default_node):
     """Settings latched (transient-local) before the node's subscription existed still reach it."""
-    node, tester = default_node
+    _node, tester = default_node
     latched = tester.create_publisher(ScannerSettings, "/late/scanner_settings", QoSProfile(
         history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
         durability=DurabilityPolicy.TRANSIENT_LOCAL))
@@ -146,15 +146,15 @@ def test_node_honours_callers_dds_environment():
                     "ROS_STATIC_PEERS"):
             assert f"{key} unset" in line, line
         assert "localhost-only opt-in off" in line
-        out = subprocess.run([sys.executable, "-c", PEER, str(TIMEOUT), "cell3_judge"], env=env, capture_output=True, text=True,
-                             timeout=TIMEOUT + 30)
+        out = subprocess.run([sys.executable, "-c", PEER, str(TIMEOUT), "cell3_judge"], env=env,
+                             capture_output=True, text=True, timeout=TIMEOUT + 30)
         assert out.stdout.startswith("FOUND"), out.stdout + out.stderr[-2000:]
     # the same peer on this run's private domain does not see it
     assert os.environ["ROS_DOMAIN_ID"] != "0"
     env_other = _plain_env(int(os.environ["ROS_DOMAIN_ID"]))
     with NodeProcess(base_env=env, node_name="cell3_judge") as _proc:
-        out = subprocess.run([sys.executable, "-c", PEER, "5", "cell3_judge"], env=env_other, capture_output=True, text=True,
-                             timeout=60)
+        out = subprocess.run([sys.executable, "-c", PEER, "5", "cell3_judge"], env=env_other,
+                             capture_output=True, text=True, timeout=60)
         assert out.stdout.startswith("NOT FOUND"), out.stdout + out.stderr[-2000:]
 
 
