@@ -3,7 +3,7 @@ SHELL := /bin/bash
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.xmetro-setup-stamp
-SETUP_INPUTS := pyproject.toml setup.py CMakeLists.txt package.xml $(wildcard msg/*.msg srv/*.srv) \
+SETUP_INPUTS := pyproject.toml setup.py CMakeLists.txt package.xml $(wildcard msg/*.msg srv/*.srv action/*.action) \
                 tools/setup.sh tools/constraints.txt tools/build-requirements.txt
 # Everything that starts a DDS participant runs in a private network namespace when root (tools/netns_run).
 NETNS := tools/netns_run
@@ -37,4 +37,4 @@ bench: setup
 	$(NETNS) $(PY) bench/run_all.py
 
 clean:
-	rm -rf build out .pytest_cache .ruff_cache xmetro_ros/msg xmetro_ros/srv xmetro_ros/config xmetro_ros/*.so
+	rm -rf build out .pytest_cache .ruff_cache xmetro_ros/msg xmetro_ros/srv xmetro_ros/action xmetro_ros/config xmetro_ros/*.so

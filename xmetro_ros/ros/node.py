@@ -17,7 +17,8 @@ Topics (names relative to the node; ``~`` = the node's private namespace):
   ``~/corrected`` (the input cloud, same fields, with x, y, z + predicted error; points without a prediction
   unchanged), ``~/quality`` (ScanQuality), ``/diagnostics`` (DiagnosticArray, every ``diagnostics_period`` and at
   once on a level change).
-- services ``~/explain`` (Explain.srv), ``~/recommend_settings`` (RecommendSettings.srv).
+- services ``~/explain`` (Explain.srv), ``~/recommend_settings`` (RecommendSettings.srv); action
+  ``~/recommend_settings`` (RecommendSettings.action: the same search with feedback and cancel).
 
 Processing runs in a worker thread fed by a bounded queue (``queue_depth``; oldest dropped and counted when full),
 so services and parameter changes stay responsive whatever the executor. The computation itself is
@@ -35,6 +36,7 @@ from typing import Any
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.action import ActionServer, CancelResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -42,6 +44,7 @@ from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.subscription import Subscription
 from sensor_msgs.msg import PointCloud2
 
+from ..action import RecommendSettings as RecommendSettingsAction
 from ..msg import ScannerSettings, ScanQuality
 from ..srv import Explain, RecommendSettings
 from . import params as node_params
@@ -155,8 +158,14 @@ class XmetroWiring:
                                                callback_group=self._srv_group)
         self.srv_recommend = self.create_service(RecommendSettings, "~/recommend_settings", self._on_recommend,
                                                  callback_group=self._srv_group)
+        # The same search as an action (feedback after each orientation, cancel between them): it can take
+        # seconds. Its topics/services live under ~/recommend_settings/_action/, beside the service.
+        self.action_recommend = ActionServer(self, RecommendSettingsAction, "~/recommend_settings",
+                                             execute_callback=self._execute_recommend,
+                                             cancel_callback=lambda _goal: CancelResponse.ACCEPT,
+                                             callback_group=self._srv_group)
         self._inputs = [self.sub_scan, self.sub_settings, self.sub_settings_volatile, self.srv_explain,
-                        self.srv_recommend]
+                        self.srv_recommend, self.action_recommend]
         with self._cv:
             self._stop = False
             self._queue.clear()
@@ -171,6 +180,8 @@ class XmetroWiring:
         for ent in self._inputs:
             if isinstance(ent, Subscription):
                 self.destroy_subscription(ent)
+            elif isinstance(ent, ActionServer):
+                ent.destroy()
             else:
                 self.destroy_service(ent)
         self._inputs = []
@@ -302,6 +313,42 @@ class XmetroWiring:
         if not out.success:
             self.get_logger().warning(f"~/recommend_settings refused: {out.message}")
         return out
+
+    def _execute_recommend(self, goal: Any) -> Any:
+        """``~/recommend_settings`` action: the service's search with feedback; cancel → CANCELED, a refused
+        request → ABORTED (result success false, message says why)."""
+        from ..recommend import RecommendCancelled, RecommendProgress
+
+        result = RecommendSettingsAction.Result()
+        core = self.core
+        if core is None:
+            goal.abort()
+            result.message = "the node is not configured"
+            return result
+        fb = RecommendSettingsAction.Feedback()
+
+        def progress(p: RecommendProgress) -> None:
+            fb.orientations_evaluated, fb.orientations_total = p.evaluated, p.total
+            fb.orientations_kept, fb.settings_per_orientation = p.kept, p.n_settings
+            fb.elapsed = float(p.elapsed_s)
+            fb.best_p95_abs_error = float(p.best_p95_mm) * 1e-3  # mm → m (inf stays inf)
+            goal.publish_feedback(fb)
+
+        try:
+            out = core.recommend(goal.request, progress, lambda: goal.is_cancel_requested)
+        except RecommendCancelled as e:
+            goal.canceled()
+            result.message = str(e)
+            result.model_id = core.model_id
+            return result
+        for name in RecommendSettings.Response.get_fields_and_field_types():
+            setattr(result, name, getattr(out, name))
+        if out.success:
+            goal.succeed()
+        else:
+            self.get_logger().warning(f"~/recommend_settings action refused: {out.message}")
+            goal.abort()
+        return result
 
     def queue_length(self) -> int:
         return len(self._queue)

@@ -14,7 +14,7 @@ from typing import Any
 
 import rclpy
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
+from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 
 from .dds_env import apply_requested_ros_env, ros_env
 
@@ -37,17 +37,20 @@ def new_context(args: list[str] | None = None) -> Context:
 class NodeSpinner:
     """Create a node with ``factory(context)`` and spin it in a daemon thread; ``close()`` shuts all down.
 
-    Usable as a context manager. ``node`` is the created node; ``context`` its private context.
+    Usable as a context manager. ``node`` is the created node; ``context`` its private context. ``threads`` > 1
+    spins it on a MultiThreadedExecutor (as ``xmetro_node`` does: an action's cancel is then served while its goal
+    executes).
     """
 
-    def __init__(self, factory: Callable[[Context], Any]) -> None:
+    def __init__(self, factory: Callable[[Context], Any], threads: int = 1) -> None:
         self.context = new_context()
         try:
             self.node = factory(self.context)
         except Exception:
             self.context.try_shutdown()
             raise
-        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor = (SingleThreadedExecutor(context=self.context) if threads <= 1
+                         else MultiThreadedExecutor(num_threads=threads, context=self.context))
         self.executor.add_node(self.node)
         self._thread = threading.Thread(target=self._spin, name=f"spin-{self.node.get_name()}", daemon=True)
         self._thread.start()
