@@ -166,3 +166,25 @@ def test_localhost_opt_in_is_applied_and_inherited():
         line = next(s for s in proc.lines if "DDS environment:" in s)
         assert "ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST" in line and "localhost-only opt-in on" in line, line
         assert "fastdds_localhost.xml" in line
+
+
+def test_dds_env_is_changed_only_on_request(monkeypatch):
+    """apply_requested_ros_env: no opt-in → the environment is left exactly as it is; the flag or the variable →
+    localhost-only applied and the opt-in exported for children. pop_localhost_flag leaves ROS arguments alone."""
+    from xmetro_ros.ros import dds_env
+
+    for k in (*DDS_ENV_KEYS, LOCALHOST_ONLY_ENV):
+        monkeypatch.delenv(k, raising=False)
+    monkeypatch.setenv("ROS_DOMAIN_ID", "0")
+    monkeypatch.setenv("ROS_STATIC_PEERS", "192.168.1.20")
+    before = dict(os.environ)
+    assert dds_env.apply_requested_ros_env() is None
+    assert dict(os.environ) == before
+    applied = dds_env.apply_requested_ros_env(flag=True)
+    assert applied is not None and os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+    assert os.environ[LOCALHOST_ONLY_ENV] == "1" and "ROS_STATIC_PEERS" not in os.environ
+    assert os.environ["ROS_DOMAIN_ID"] == "0"  # an explicit domain is kept
+    argv, found = dds_env.pop_localhost_flag(["prog", "--localhost-only", "--ros-args", "-p", "a:=1"])
+    assert found and argv == ["prog", "--ros-args", "-p", "a:=1"]
+    argv, found = dds_env.pop_localhost_flag(["prog", "--ros-args", "--localhost-only"])
+    assert not found and argv == ["prog", "--ros-args", "--localhost-only"]
