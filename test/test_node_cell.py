@@ -188,3 +188,57 @@ def test_dds_env_is_changed_only_on_request(monkeypatch):
     assert found and argv == ["prog", "--ros-args", "-p", "a:=1"]
     argv, found = dds_env.pop_localhost_flag(["prog", "--ros-args", "--localhost-only"])
     assert not found and argv == ["prog", "--ros-args", "--localhost-only"]
+
+
+TALKER = """
+import sys, time, rclpy
+from std_msgs.msg import String
+rclpy.init()
+n = rclpy.create_node("xmetro_domain0_talker")
+pub = n.create_publisher(String, "/cell/chatter", 10)
+end = time.monotonic() + float(sys.argv[1])
+i = 0
+while time.monotonic() < end:
+    pub.publish(String(data=f"msg {i}"))
+    i += 1
+    time.sleep(0.1)
+n.destroy_node()
+rclpy.shutdown()
+"""
+
+
+@pytest.mark.timeout(180)
+def test_recorder_honours_callers_dds_environment(tmp_path):
+    """`xmetro record` started with only ROS_DOMAIN_ID=0 records a domain-0 talker started the same way (private
+    network namespace only, as above)."""
+    import signal
+
+    if os.environ.get("XMETRO_IN_NETNS") != "1":
+        pytest.skip("needs the private network namespace (root): a domain-0 participant outside it reaches the LAN")
+    env = _plain_env(0)
+    env["PYTHONUNBUFFERED"] = "1"
+    out = tmp_path / "cell.mcap"
+    rec = subprocess.Popen([sys.executable, "-m", "xmetro_ros.apps.record", "record", "/cell/chatter", "-o", str(out),
+                            "--discovery-period", "0.2", "--progress", "0.2"], env=env, stdout=subprocess.PIPE,
+                           stderr=subprocess.STDOUT, text=True)
+    talker = subprocess.Popen([sys.executable, "-c", TALKER, "60"], env=env)
+    lines: list[str] = []
+    try:
+        import threading
+
+        threading.Thread(target=lambda: lines.extend(ln.rstrip("\n") for ln in rec.stdout), daemon=True).start()
+
+        def recorded() -> int:
+            prog = [ln for ln in list(lines) if ln.startswith("progress")]
+            return int(prog[-1].split("/cell/chatter=")[1].split()[0]) if prog and "/cell/chatter=" in prog[-1] \
+                else 0
+        assert wait_for(lambda: recorded() >= 5, TIMEOUT * 2), lines[-10:]
+    finally:
+        talker.kill()
+        talker.wait(10)
+        rec.send_signal(signal.SIGINT)
+        rec.wait(30)
+    assert rec.returncode == 0, lines[-10:]
+    line = next(ln for ln in lines if "DDS environment:" in ln)
+    assert "ROS_DOMAIN_ID=0" in line and "ROS_AUTOMATIC_DISCOVERY_RANGE unset" in line, line
+    assert "FASTDDS_DEFAULT_PROFILES_FILE unset" in line and "localhost-only opt-in off" in line, line

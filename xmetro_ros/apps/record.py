@@ -47,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
     from rclpy.signals import SignalHandlerOptions
 
     from ..bag.writer import BagWriteError, BagWriter
-    from ..ros.dds_env import apply_requested_ros_env
+    from ..ros.dds_env import apply_requested_ros_env, dds_env_summary
     from ..ros.recorder import Recorder
 
     logging.basicConfig(level=logging.INFO, format="[xmetro record] %(levelname)s %(message)s", stream=sys.stderr)
@@ -72,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     apply_requested_ros_env(bool(getattr(args, "localhost_only", False)))
+    logging.info("DDS environment: %s", dds_env_summary())
     ctx = Context()
     rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
     rc = 0
