@@ -3,13 +3,16 @@ SHELL := /bin/bash
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.xmetro-setup-stamp
-SETUP_INPUTS := pyproject.toml setup.py CMakeLists.txt package.xml $(wildcard msg/*.msg srv/*.srv) \
+SETUP_INPUTS := pyproject.toml setup.py CMakeLists.txt package.xml $(wildcard msg/*.msg srv/*.srv action/*.action) \
                 tools/setup.sh tools/constraints.txt tools/build-requirements.txt
 # Everything that starts a DDS participant runs in a private network namespace when root (tools/netns_run).
 NETNS := tools/netns_run
 PYTEST_ARGS ?=
 # Small (N,3)@(3,3) products are ~100x slower with OpenBLAS's threads on a busy 2-core machine.
 export OPENBLAS_NUM_THREADS := 1
+# Localhost-only DDS is an opt-in of our tests, demo and benchmarks (the shipped node honours the caller's DDS
+# environment): every process started from here, and its children, applies it (xmetro_ros/ros/dds_env.py).
+export XMETRO_LOCALHOST_ONLY := 1
 
 .PHONY: setup lint test demo bench clean
 
@@ -34,4 +37,4 @@ bench: setup
 	$(NETNS) $(PY) bench/run_all.py
 
 clean:
-	rm -rf build out .pytest_cache .ruff_cache xmetro_ros/msg xmetro_ros/srv xmetro_ros/config xmetro_ros/*.so
+	rm -rf build out .pytest_cache .ruff_cache xmetro_ros/msg xmetro_ros/srv xmetro_ros/action xmetro_ros/config xmetro_ros/*.so

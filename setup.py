@@ -21,7 +21,7 @@ from setuptools.command.build_py import build_py
 ROOT = Path(__file__).resolve().parent
 PKG = "xmetro_ros"
 INTERFACE_SOURCES = ["CMakeLists.txt", "package.xml", *sorted(str(p.relative_to(ROOT)) for p in
-                     [*ROOT.glob("msg/*.msg"), *ROOT.glob("srv/*.srv")])]
+                     [*ROOT.glob("msg/*.msg"), *ROOT.glob("srv/*.srv"), *ROOT.glob("action/*.action")])]
 
 
 def package_version() -> str:
@@ -77,7 +77,7 @@ def build_interfaces() -> Path:
         stamp.write_text(_stamp())
     # Generated Python modules and typesupport extensions go into the source package (git-ignored), so that both
     # a regular and an editable install see them.
-    for sub in ("msg", "srv"):
+    for sub in ("msg", "srv", "action"):
         shutil.rmtree(ROOT / PKG / sub, ignore_errors=True)
         shutil.copytree(generated / sub, ROOT / PKG / sub)
     for so in ROOT.joinpath(PKG).glob("*.so"):
@@ -106,7 +106,7 @@ class BuildWithInterfaces(build_py):
     def run(self) -> None:
         build_interfaces()
         # Re-collect package data now that the generated modules exist.
-        self.packages = sorted(set(self.packages or []) | {f"{PKG}.msg", f"{PKG}.srv"})
+        self.packages = sorted(set(self.packages or []) | {f"{PKG}.msg", f"{PKG}.srv", f"{PKG}.action"})
         self.data_files = self._get_data_files()
         super().run()
 

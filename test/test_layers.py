@@ -22,7 +22,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "xmetro_ros"
-GENERATED = {"msg", "srv"}
+GENERATED = {"msg", "srv", "action"}
 LAYERS = ("ros", "apps")
 # Core modules allowed to import these (module path relative to the package → allowed import prefixes).
 CORE_EXCEPTIONS = {"bag/codec.py": ("rclpy.serialization",)}
@@ -128,7 +128,8 @@ def test_importing_the_whole_core_loads_no_ros():
         f"for n in {names!r}: importlib.import_module(n)\n"
         "ros = [k for k in sys.modules if k.split('.')[0] in ('rclpy', 'sensor_msgs', 'std_msgs', 'geometry_msgs',\n"
         "       'builtin_interfaces', 'rcl_interfaces', 'diagnostic_msgs', 'xmetro_ros.msg')\n"
-        "       or k.startswith(('xmetro_ros.ros', 'xmetro_ros.apps', 'xmetro_ros.msg', 'xmetro_ros.srv'))]\n"
+        "       or k.startswith(('xmetro_ros.ros', 'xmetro_ros.apps', 'xmetro_ros.msg', 'xmetro_ros.srv',\n"
+        "                        'xmetro_ros.action'))]\n"
         "print(sorted(ros))\n"
     )
     assert _run(code) == "[]"

@@ -43,9 +43,22 @@ def test_wheel_carries_interfaces_libraries_config_and_model(tmp_path: Path):
                  "xmetro_ros/srv/_recommend_settings.py", "xmetro_ros/models/default/card.json",
                  "xmetro_ros/config/xmetro.yaml", "xmetro_ros/config/fastdds_localhost.xml",
                  f"{data}/data/share/ament_index/resource_index/packages/xmetro_ros",
-                 f"{data}/data/share/xmetro_ros/msg/ScanQuality.msg"):
+                 f"{data}/data/share/xmetro_ros/msg/ScanQuality.msg",
+                 "xmetro_ros/action/_recommend_settings.py", "xmetro_ros/ros/lifecycle_node.py",
+                 f"{data}/data/share/xmetro_ros/action/RecommendSettings.action"):
         assert must in names, must
     assert any(n.startswith("xmetro_ros/models/default/") and n.endswith(".onnx") for n in names)
+    # Runtime install lean: PyTorch and the other training-only packages only under the [train] extra.
+    meta = next(n for n in names if n.endswith(".dist-info/METADATA"))
+    requires = [ln.split(":", 1)[1].strip() for ln in zipfile.ZipFile(wheel).read(meta).decode().splitlines()
+                if ln.startswith("Requires-Dist:")]
+    runtime = [r for r in requires if "extra ==" not in r]
+    train = [r for r in requires if "extra == \"train\"" in r]
+    for heavy in ("torch", "catboost", "shap", "scikit-learn", "open3d", "matplotlib", "skl2onnx"):
+        assert not any(r.split(";")[0].strip().startswith(heavy) for r in runtime), (heavy, runtime)
+        assert any(r.startswith(heavy) for r in train), (heavy, train)
+    for ros in ("ros-rclpy", "ros-action-msgs", "ros-lifecycle-msgs", "onnxruntime"):
+        assert any(r.startswith(ros) for r in runtime), (ros, runtime)
 
 
 def _package_xml_version() -> str:

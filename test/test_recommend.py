@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import os
 
 import numpy as np
@@ -10,7 +11,14 @@ import pytest
 from xmetro_ros.artifacts import Sphere
 from xmetro_ros.geometry import matrix_to_quat
 from xmetro_ros.inference import ModelSet
-from xmetro_ros.recommend import coverage_mask, orientation_grid, recommend, rotation_xyz
+from xmetro_ros.recommend import (
+    RecommendCancelled,
+    RecommendProgress,
+    coverage_mask,
+    orientation_grid,
+    recommend,
+    rotation_xyz,
+)
 from xmetro_ros.scan_handler import HandlerParams, ScanHandler
 from xmetro_ros.scanner import ScannerModel, ScanSettings
 from xmetro_ros.sim import simulate_scan
@@ -82,3 +90,27 @@ def test_recommend_refuses(judged):
     with pytest.raises(ValueError, match="coverage"):
         recommend(model, res.context, rows, res.features, scan.pose, scanner, scan.settings, max_points=300,
                   max_tilt=1.5, tilt_steps=2, max_turn=-1, min_coverage=1.0)
+
+
+def test_recommend_progress_and_cancel(judged):
+    """The progress callback sees every orientation (best p95 so far never rising, ending at the answer's); the
+    cancel callback stops the search between orientations."""
+    model, scanner, scan, res = judged
+    pts = np.asarray(res.prepared.points)
+    rows = np.flatnonzero(np.linalg.norm(pts - [0, 0, 17.5], axis=1) < 8.0)
+    kw = dict(max_points=100, max_tilt=0.25, tilt_steps=3, max_turn=1.2, turn_steps=3, min_coverage=0.95)
+    seen: list[RecommendProgress] = []
+    rec = recommend(model, res.context, rows, res.features, scan.pose, scanner, scan.settings, **kw,
+                    progress=seen.append)
+    assert [p.evaluated for p in seen] == list(range(1, 28)) and all(p.total == 27 for p in seen)
+    assert seen[-1].kept == rec.n_orientations_kept and seen[-1].best_p95_mm == rec.best.p95_mm
+    assert all(b.best_p95_mm <= a.best_p95_mm for a, b in itertools.pairwise(seen))
+    calls = []
+
+    def cancel_after_three() -> bool:
+        calls.append(1)
+        return len(calls) > 3
+
+    with pytest.raises(RecommendCancelled, match="after 3 of 27"):
+        recommend(model, res.context, rows, res.features, scan.pose, scanner, scan.settings, **kw,
+                  cancelled=cancel_after_three)

@@ -23,7 +23,9 @@ the normals are those of the current scan.
 
 from __future__ import annotations
 
+import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -34,6 +36,8 @@ from .scanner import ScannerModel, ScanSettings
 
 __all__ = [
     "Candidate",
+    "RecommendCancelled",
+    "RecommendProgress",
     "Recommendation",
     "coverage_mask",
     "orientation_grid",
@@ -60,6 +64,22 @@ class Candidate:
     @property
     def score_mm(self) -> float:
         return self.p95_mm
+
+
+@dataclass
+class RecommendProgress:
+    """Progress of a :func:`recommend` search (after ``evaluated`` orientations)."""
+
+    evaluated: int                # orientations evaluated so far
+    total: int                    # orientations in the grid
+    kept: int                     # of which kept (coverage high enough)
+    n_settings: int               # settings tried per kept orientation
+    elapsed_s: float
+    best_p95_mm: float            # best p95 |error| so far (inf: none yet)
+
+
+class RecommendCancelled(Exception):
+    """:func:`recommend` stopped because its ``cancelled`` callback returned true."""
 
 
 @dataclass
@@ -116,7 +136,9 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
               max_points: int = 2000, max_tilt: float = 0.2618, tilt_steps: int = 3, max_turn: float = 1.5708,
               turn_steps: int = 3, grazing_incidence_deg: float = 75.0, grazing_view_deg: float = 75.0,
               min_coverage: float = 0.95, batch_rows: int = 400_000,
-              max_seconds: float | None = None) -> Recommendation:
+              max_seconds: float | None = None,
+              progress: Callable[[RecommendProgress], None] | None = None,
+              cancelled: Callable[[], bool] | None = None) -> Recommendation:
     """Search settings × orientations for the region ``rows`` of a judged scan (see the module docstring).
 
     Args:
@@ -130,9 +152,12 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
         candidates: settings to try; None → ``scanner.study_configurations()``.
         max_seconds: time budget; the search stops (and says so in the note) once it is spent, after at least the
             current orientation (evaluated first).
+        progress: called after each orientation with a :class:`RecommendProgress` (the ROS action's feedback).
+        cancelled: polled before each orientation; true → :class:`RecommendCancelled` is raised.
 
     Raises:
         ValueError: empty region, or no orientation keeps the required coverage.
+        RecommendCancelled: ``cancelled()`` became true.
     """
     from .features import REGISTRY, compute_features
 
@@ -163,9 +188,15 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
     ranked: list[Candidate] = []
     n_kept = n_eval = 0
     m = len(rows)
+    best_p95 = math.inf
     for r in orients:
+        if cancelled is not None and cancelled():
+            raise RecommendCancelled(f"cancelled after {n_eval} of {len(orients)} orientations")
         if max_seconds is not None and n_eval and time.monotonic() - t_start > max_seconds:
             break
+        if progress is not None and n_eval:
+            progress(RecommendProgress(n_eval, len(orients), n_kept, len(cands), time.monotonic() - t_start,
+                                       best_p95))
         n_eval += 1
         pose_o = pose.rotated(r, pivot=centroid)
         ctx_o = sub.with_pose(pose_o, scanner)
@@ -189,6 +220,9 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
         means, p95s = _stats(pred, cov)
         for k, s in enumerate(cands):
             ranked.append(Candidate(s, r, pose_o, float(means[k]), float(p95s[k]), float(cov.mean())))
+        best_p95 = min(best_p95, float(np.min(p95s)))
+    if progress is not None:
+        progress(RecommendProgress(n_eval, len(orients), n_kept, len(cands), time.monotonic() - t_start, best_p95))
     if not ranked:
         raise ValueError(f"no orientation keeps the coverage >= {need:.3f} of the region")
     ranked.sort(key=lambda c: (c.p95_mm, c.mean_mm))

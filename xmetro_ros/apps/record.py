@@ -36,6 +36,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--progress", type=float, default=0.0,
                    help="print per-topic counts every this many seconds (0: off)")
     p.add_argument("--exclude", action="append", default=[], help="topic never recorded (repeatable)")
+    p.add_argument("--localhost-only", action="store_true",
+                   help="apply xmetro's localhost-only DDS settings (as XMETRO_LOCALHOST_ONLY=1); default: the DDS "
+                        "environment this command is started in")
     p.set_defaults(func=run)
 
     from ..bag.recover import __doc__ as recover_doc
@@ -80,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
     from rclpy.signals import SignalHandlerOptions
 
     from ..bag.writer import BagWriteError, BagWriter
-    from ..ros.dds_env import apply_ros_env
+    from ..ros.dds_env import apply_requested_ros_env, dds_env_summary
     from ..ros.recorder import Recorder
 
     logging.basicConfig(level=logging.INFO, format="[xmetro record] %(levelname)s %(message)s", stream=sys.stderr)
@@ -104,7 +107,8 @@ def run(args: argparse.Namespace) -> int:
         stop.set()
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    apply_ros_env()
+    apply_requested_ros_env(bool(getattr(args, "localhost_only", False)))
+    logging.info("DDS environment: %s", dds_env_summary())
     ctx = Context()
     rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
     rc = 0

@@ -127,6 +127,12 @@ class XmetroCore:
             err = str(e)
         entry = SettingsEntry(stamp_to_ns(msg.header.stamp), msg, settings, pose, scanner_id, msg.header.frame_id, err)
         with self._settings_lock:
+            # The same message can arrive twice (the node's transient-local and volatile subscriptions both match
+            # a transient-local publisher): one entry per (frame, stamp), the latest received wins.
+            for i, e in enumerate(self._settings):
+                if e.stamp_ns == entry.stamp_ns and e.frame_id == entry.frame_id:
+                    del self._settings[i]
+                    break
             self._settings.append(entry)
             ordered = sorted(self._settings, key=lambda e: e.stamp_ns)
             self._settings.clear()
@@ -259,10 +265,17 @@ class XmetroCore:
         resp.model_id = self.model_id
         return resp
 
-    def recommend(self, req: RecommendSettings.Request) -> RecommendSettings.Response:
+    def recommend(self, req: Any, progress: Any = None, cancelled: Any = None) -> RecommendSettings.Response:
         """``~/recommend_settings``: the settings and head orientation predicted to give the smallest error in a
-        region of a judged scan (never raises: failures → success false)."""
-        from ..recommend import recommend
+        region of a judged scan (never raises but for a cancel: failures → success false).
+
+        ``req``: a RecommendSettings request or the action's goal (same fields); ``progress`` / ``cancelled``: see
+        :func:`xmetro_ros.recommend.recommend` (the action's feedback and cancel).
+
+        Raises:
+            RecommendCancelled: ``cancelled()`` became true during the search.
+        """
+        from ..recommend import RecommendCancelled, recommend
 
         base = RecommendSettings.Response()
         base.model_id = self.model_id
@@ -294,7 +307,10 @@ class XmetroCore:
                             max_tilt=max_tilt, tilt_steps=int(v["recommend_tilt_steps"]), max_turn=max_turn,
                             turn_steps=int(v["recommend_turn_steps"]),
                             grazing_incidence_deg=v["grazing_incidence_deg"], grazing_view_deg=v["grazing_view_deg"],
-                            min_coverage=v["recommend_min_coverage"], max_seconds=v["recommend_max_seconds"])
+                            min_coverage=v["recommend_min_coverage"], max_seconds=v["recommend_max_seconds"],
+                            progress=progress, cancelled=cancelled)
+        except RecommendCancelled:
+            raise
         except (ServiceError, ValueError) as e:
             return failed_response(base, str(e))
         except Exception as e:

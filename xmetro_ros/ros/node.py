@@ -3,25 +3,26 @@
 Topics (names relative to the node; ``~`` = the node's private namespace):
 
 - sub ``scan`` (sensor_msgs/PointCloud2, metres; organized or not; float x, y, z required, other fields kept):
-  sensor-data QoS (keep last 5, volatile) with the reliability of the ``reliability`` parameter.
-- sub ``scanner_settings`` (xmetro_ros/ScannerSettings, reliable, transient-local, depth 10): each scan uses the
-  latest settings stamped at or before it (last ``settings_history`` kept); none → the configured defaults
-  (ScanQuality.settings_defaulted, /diagnostics WARN).
-- pub ``~/deviations`` (PointCloud2: x, y, z, dx, dy, dz, dnorm float32 metres, flags uint16; one point per
-  input point, same height × width; predicted error = nominal − measured), ``~/corrected`` (the input cloud, same
-  fields, with x, y, z + predicted error; points without a prediction unchanged), ``~/quality`` (ScanQuality),
-  ``/diagnostics`` (DiagnosticArray, every ``diagnostics_period`` and at once on a level change).
-- services ``~/explain`` (Explain.srv), ``~/recommend_settings`` (RecommendSettings.srv).
+  sensor-data QoS (keep last 5, volatile), best-effort by default (matches best-effort drivers and reliable
+  publishers alike; parameter ``reliability``).
+- sub ``scanner_settings`` (xmetro_ros/ScannerSettings, reliable, depth 10) twice: transient-local (history of a
+  latched publisher) and volatile (``ros2 topic pub``, bags replayed without QoS metadata), one handler, a message
+  received on both stored once. Each scan uses the latest settings stamped at or before it (last
+  ``settings_history`` kept); none → the configured defaults (ScanQuality.settings_defaulted, /diagnostics WARN).
+- every subscription's QoS can be overridden with ROS 2's standard parameters, e.g.
+  ``qos_overrides./scan.subscription.reliability``, ``qos_overrides./scanner_settings.subscription.durability``,
+  ``qos_overrides./scanner_settings.subscription_volatile.reliability`` (read at start / on activate).
+- pub ``~/deviations`` (PointCloud2: x, y, z, dx, dy, dz, dnorm float32 metres, flags uint16, point_step 32 with
+  every field aligned; one point per input point, same height × width; predicted error = nominal − measured),
+  ``~/corrected`` (the input cloud, same fields, with x, y, z + predicted error; points without a prediction
+  unchanged), ``~/quality`` (ScanQuality), ``/diagnostics`` (DiagnosticArray, every ``diagnostics_period`` and at
+  once on a level change).
+- services ``~/explain`` (Explain.srv), ``~/recommend_settings`` (RecommendSettings.srv); action
+  ``~/recommend_settings`` (RecommendSettings.action: the same search with feedback and cancel).
 
-Processing runs in a worker thread fed by a bounded queue (``queue_depth``; the oldest is dropped, counted and
-answered ERROR QUEUE_OVERFLOW when full), so services and parameter changes stay responsive whatever the executor.
-Watchdog: a scan past ``max_processing_time`` is abandoned at the next stage boundary (ERROR TIMEOUT); a worker that
-does not come back within twice that bound is abandoned (its scan answered TIMEOUT, its late result discarded) and
-replaced by a fresh worker — at most one abandoned thread at a time, since Python cannot kill one; /diagnostics is
-ERROR meanwhile. Every scan is accounted for (ScanQuality and /diagnostics counters): received = judged + dropped +
-queued + in progress; scans lost before the callback are counted from gaps in each publisher's sequence numbers.
-The computation itself is :class:`XmetroCore` (no DDS), which ``xmetro predict`` can use offline to produce the very
-same messages.
+Processing runs in a worker thread fed by a bounded queue (``queue_depth``; oldest dropped and counted when full),
+so services and parameter changes stay responsive whatever the executor. The computation itself is
+:class:`XmetroCore` (no DDS), which ``xmetro predict`` can use offline to produce the very same messages.
 """
 
 from __future__ import annotations
@@ -35,12 +36,16 @@ from typing import Any
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.action import ActionServer, CancelResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos_overriding_options import QoSOverridingOptions
+from rclpy.subscription import Subscription
 from sensor_msgs.msg import PointCloud2
 
+from ..action import RecommendSettings as RecommendSettingsAction
 from ..msg import ScannerSettings, ScanQuality
 from ..srv import Explain, RecommendSettings
 from . import params as node_params
@@ -51,6 +56,7 @@ from .diagnostics import DiagnosticsState
 __all__ = [
     "READY_MESSAGE",
     "XmetroNode",
+    "XmetroWiring",
     "main",
     "output_qos",
     "scan_qos",
@@ -60,64 +66,47 @@ __all__ = [
 READY_MESSAGE = "xmetro_node ready"
 
 
-def scan_qos(reliability: str = "reliable", depth: int = 5) -> QoSProfile:
-    """Sensor-data-compatible QoS of the ``scan`` subscription."""
+def scan_qos(reliability: str = "best_effort", depth: int = 5) -> QoSProfile:
+    """Sensor-data QoS of the ``scan`` subscription. Best-effort (the default) matches best-effort drivers and
+    reliable publishers alike; reliable matches only reliable publishers."""
     rel = ReliabilityPolicy.RELIABLE if reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=rel,
                       durability=DurabilityPolicy.VOLATILE)
 
 
-def settings_qos() -> QoSProfile:
-    """QoS of the ``scanner_settings`` subscription: reliable, transient-local, keep last 10."""
+def settings_qos(durability: DurabilityPolicy = DurabilityPolicy.TRANSIENT_LOCAL) -> QoSProfile:
+    """QoS of a ``scanner_settings`` subscription (reliable, depth 10; transient-local and volatile: see
+    :meth:`XmetroWiring._create_inputs`)."""
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
-                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+                      durability=durability)
 
 
 def output_qos(depth: int = 10) -> QoSProfile:
-    """QoS of the node's publishers: reliable, volatile, keep last ``depth``."""
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.VOLATILE)
 
 
-class XmetroNode(Node):
-    """The live node (see the module docstring). Extra keyword arguments go to ``rclpy.node.Node``
-    (``context``, ``parameter_overrides``, ``cli_args``...)."""
+class XmetroWiring:
+    """The node's wiring (parameters, publishers, subscriptions, services, worker), shared by :class:`XmetroNode`
+    and ``lifecycle_node.XmetroLifecycleNode``. Mixed into an ``rclpy.node.Node`` subclass; the steps are split so
+    that the lifecycle node can run them from its transitions: :meth:`_init_wiring` (parameters, in ``__init__``),
+    :meth:`_load_core` (model + scanner), :meth:`_create_outputs`, :meth:`_create_inputs` (subscriptions, services,
+    worker, diagnostics timer) and their inverses."""
 
-    def __init__(self, node_name: str = "xmetro_node", **kwargs: Any) -> None:
-        super().__init__(node_name, **kwargs)
-        node_params.declare_all(self)
-        values = node_params.values_from_node(self)
-        reason = node_params.validate(values, values)
-        if reason:
-            raise ValueError(f"invalid parameter: {reason}")
-        self.core = XmetroCore(values, self.get_logger())
-        log = self.get_logger()
-        if self.core.degraded:
-            log.error(f"starting DEGRADED: {self.core.degraded}; scans get ERROR MODEL_UNAVAILABLE, services fail")
-        self.diag = DiagnosticsState(self.get_name(), self.core.scanner.id, self.core.model_id, self.core.degraded,
-                                     scan_timeout=float(values["scan_timeout"]))
+    core: XmetroCore | None
+
+    def _init_wiring(self, writable: tuple[str, ...] = ()) -> None:
+        node_params.declare_all(self, writable=writable)
+        self.core = None
+        self.diag: DiagnosticsState | None = None
         self.add_on_set_parameters_callback(self._on_set_parameters)
-
         self._work_group = MutuallyExclusiveCallbackGroup()
         self._srv_group = ReentrantCallbackGroup()
-        # Clouds: a short writer history (each 180k-point output is ~10 MB; reliable writers keep `depth` samples).
-        self.pub_dev = self.create_publisher(PointCloud2, "~/deviations", output_qos(2))
-        self.pub_corr = self.create_publisher(PointCloud2, "~/corrected", output_qos(2))
-        self.pub_quality = self.create_publisher(ScanQuality, "~/quality", output_qos())
-        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", output_qos())
-        self.sub_scan = self.create_subscription(PointCloud2, "scan", self._on_scan,
-                                                 scan_qos(values["reliability"]), callback_group=self._work_group,
-                                                 event_callbacks=self._scan_event_callbacks())
-        self.sub_settings = self.create_subscription(ScannerSettings, "scanner_settings", self._on_settings,
-                                                     settings_qos(), callback_group=self._work_group)
-        self.srv_explain = self.create_service(Explain, "~/explain", self._on_explain,
-                                               callback_group=self._srv_group)
-        self.srv_recommend = self.create_service(RecommendSettings, "~/recommend_settings", self._on_recommend,
-                                                 callback_group=self._srv_group)
         self._queue: deque[tuple[PointCloud2, float]] = deque()
-        self._qmax = int(values["queue_depth"])
+        self._qmax = 1
         self._cv = threading.Condition()
         self._stop = False
+        self._worker: threading.Thread | None = None
         self._diag_lock = threading.Lock()
         # Watchdog state (under self._cv): the scan in processing (start, msg, t0), the live worker's token, abandoned
         # worker threads still running; last sequence number seen per publisher (loss accounting).
@@ -125,31 +114,147 @@ class XmetroNode(Node):
         self._token: object = object()
         self._abandoned: list[threading.Thread] = []
         self._last_seq: OrderedDict[bytes, int] = OrderedDict()
+        self._inputs: list[Any] = []
+        self._outputs: list[Any] = []
+        self.timer_diag = None
+
+    def _load_core(self) -> XmetroCore:
+        """Read and check the parameters, load the model set and the scanner (XmetroCore)."""
+        values = node_params.values_from_node(self)
+        reason = node_params.validate(values, values)
+        if reason:
+            raise ValueError(f"invalid parameter: {reason}")
+        core = XmetroCore(values, self.get_logger())
+        if core.degraded:
+            self.get_logger().error(f"starting DEGRADED: {core.degraded}; scans get ERROR MODEL_UNAVAILABLE, "
+                                    "services fail")
+        self.diag = DiagnosticsState(self.get_name(), core.scanner.id, core.model_id, core.degraded,
+                                     scan_timeout=float(values["scan_timeout"]))
+        self._qmax = int(values["queue_depth"])
+        self.core = core
+        return core
+
+    def _create_outputs(self, create: Any) -> None:
+        """Publishers, made with ``create`` (``create_publisher`` or ``create_lifecycle_publisher``)."""
+        # Clouds: a short writer history (each 180k-point output is ~10 MB; reliable writers keep `depth` samples).
+        self.pub_dev = create(PointCloud2, "~/deviations", output_qos(2))
+        self.pub_corr = create(PointCloud2, "~/corrected", output_qos(2))
+        self.pub_quality = create(ScanQuality, "~/quality", output_qos())
+        self.pub_diag = create(DiagnosticArray, "/diagnostics", output_qos())
+        self._outputs = [self.pub_dev, self.pub_corr, self.pub_quality, self.pub_diag]
+
+    def _create_inputs(self) -> None:
+        """Subscriptions (QoS overridable by ``qos_overrides.<topic>.subscription...`` parameters), services, the
+        worker thread and the diagnostics timer."""
+        assert self.core is not None
+        values = self.core.values
+        overrides = QoSOverridingOptions.with_default_policies()
+        try:
+            self.sub_scan = self.create_subscription(
+                PointCloud2, "scan", self._on_scan, scan_qos(values["reliability"]), callback_group=self._work_group,
+                qos_overriding_options=overrides, event_callbacks=self._scan_event_callbacks())
+        except Exception as e:  # a middleware without the message-lost event: sequence gaps still count losses
+            self.get_logger().warning(f"message-lost events unavailable ({type(e).__name__}: {e})")
+            self.sub_scan = self.create_subscription(
+                PointCloud2, "scan", self._on_scan, scan_qos(values["reliability"]), callback_group=self._work_group,
+                qos_overriding_options=overrides)
+        # Settings: a transient-local subscription gets the history a latched (transient-local) publisher kept
+        # for late joiners, but never matches a volatile publisher (`ros2 topic pub`, a bag replayed without QoS
+        # metadata); a volatile one matches both, without history. Both feed one handler; a message received twice
+        # (a transient-local publisher matches both) is stored once (XmetroCore.add_settings keys on frame + stamp).
+        self.sub_settings = self.create_subscription(
+            ScannerSettings, "scanner_settings", self._on_settings, settings_qos(), callback_group=self._work_group,
+            qos_overriding_options=overrides)
+        self.sub_settings_volatile = self.create_subscription(
+            ScannerSettings, "scanner_settings", self._on_settings, settings_qos(DurabilityPolicy.VOLATILE),
+            callback_group=self._work_group,
+            qos_overriding_options=QoSOverridingOptions.with_default_policies(entity_id="volatile"))
+        self.srv_explain = self.create_service(Explain, "~/explain", self._on_explain,
+                                               callback_group=self._srv_group)
+        self.srv_recommend = self.create_service(RecommendSettings, "~/recommend_settings", self._on_recommend,
+                                                 callback_group=self._srv_group)
+        # The same search as an action (feedback after each orientation, cancel between them): it can take
+        # seconds. Its topics/services live under ~/recommend_settings/_action/, beside the service.
+        self.action_recommend = ActionServer(self, RecommendSettingsAction, "~/recommend_settings",
+                                             execute_callback=self._execute_recommend,
+                                             cancel_callback=lambda _goal: CancelResponse.ACCEPT,
+                                             callback_group=self._srv_group)
+        self._inputs = [self.sub_scan, self.sub_settings, self.sub_settings_volatile, self.srv_explain,
+                        self.srv_recommend, self.action_recommend]
+        with self._cv:
+            self._stop = False
+            self._queue.clear()
         self._worker = self._start_worker()
         self.timer_diag = self.create_timer(float(values["diagnostics_period"]), self._publish_diag,
                                             callback_group=self._srv_group)
         self._publish_diag()
-        log.info(f"{READY_MESSAGE}: model {self.core.model_id or '(none)'}, scanner {self.core.scanner.id}, "
-                 f"scan QoS {values['reliability']}")
+
+    def _destroy_inputs(self) -> None:
+        """Inverse of :meth:`_create_inputs`: no scan is taken or processed afterwards (queued ones are dropped)."""
+        for ent in self._inputs:
+            if isinstance(ent, Subscription):
+                self.destroy_subscription(ent)
+            elif isinstance(ent, ActionServer):
+                ent.destroy()
+            else:
+                self.destroy_service(ent)
+        self._inputs = []
+        if self.timer_diag is not None:
+            self.destroy_timer(self.timer_diag)
+            self.timer_diag = None
+        self._stop_worker()
+
+    def _destroy_outputs(self) -> None:
+        for pub in self._outputs:
+            self.destroy_publisher(pub)
+        self._outputs = []
+
+    def _stop_worker(self) -> None:
+        with self._cv:
+            self._stop = True
+            self._queue.clear()
+            self._busy = None
+            self._cv.notify_all()
+        if self._worker is not None and self._worker is not threading.current_thread():
+            self._worker.join(timeout=10.0)
+        self._worker = None
+
+    def _log_ready(self) -> None:
+        from .dds_env import dds_env_summary
+
+        assert self.core is not None
+        self.get_logger().info(f"DDS environment: {dds_env_summary()}")
+        self.get_logger().info(f"{READY_MESSAGE}: model {self.core.model_id or '(none)'}, scanner "
+                               f"{self.core.scanner.id}, scan QoS {self.sub_scan.qos_profile.reliability.name}")
 
     # ------------------------------------------------------------------ callbacks
     def _on_set_parameters(self, params: list[Any]) -> SetParametersResult:
         changes = {p.name: p.value for p in params}
-        current = dict(self.core.values)
+        core = self.core
+        current = dict(core.values) if core is not None else node_params.values_from_node(self)
         reason = node_params.validate(changes, current)
         if reason:
             return SetParametersResult(successful=False, reason=reason)
         ours = {k: v for k, v in changes.items() if k in current}
-        self.core.update_values(ours)
-        if "scan_timeout" in ours:
-            self.diag.scan_timeout = float(ours["scan_timeout"])
+        if core is not None:
+            loaded = {k: v for k, v in ours.items() if k in node_params.LOAD_TIME and v != current[k]}
+            if loaded:
+                return SetParametersResult(successful=False, reason=f"{', '.join(loaded)} take effect when the "
+                                           "model is loaded: deactivate and clean up the node first")
+            core.update_values(ours)
+            if "scan_timeout" in ours and self.diag is not None:
+                self.diag.scan_timeout = float(ours["scan_timeout"])
         if ours:
             self.get_logger().info(f"parameters changed: {ours}")
         return SetParametersResult(successful=True)
 
     def _on_settings(self, msg: ScannerSettings) -> None:
-        err = self.core.add_settings(msg)
-        self.diag.on_settings()
+        core = self.core
+        if core is None:
+            return
+        err = core.add_settings(msg)
+        if self.diag is not None:
+            self.diag.on_settings()
         if err:
             self.get_logger().error(f"invalid ScannerSettings stamped {stamp_to_ns(msg.header.stamp)} ns: {err}")
 
@@ -157,7 +262,8 @@ class XmetroNode(Node):
         # DDS sample-lost events (rmw_fastrtps reports none for a reader's keep-last history overflow: the sequence
         # gaps below count those); shown apart on /diagnostics.
         return SubscriptionEventCallbacks(
-            message_lost=lambda ev: self.diag.on_lost(int(ev.total_count_change), dds_event=True))
+            message_lost=lambda ev: self.diag.on_lost(int(ev.total_count_change), dds_event=True)
+            if self.diag is not None else None)
 
     def _count_gaps(self, info: Any) -> None:
         """Scans lost before the callback: gaps in the publisher's sequence numbers since its last received scan.
@@ -181,10 +287,15 @@ class XmetroNode(Node):
 
     def _on_scan(self, msg: PointCloud2, info: Any) -> None:
         t0 = time.monotonic()
+        core, diag = self.core, self.diag
+        if core is None or diag is None:
+            return
         self._count_gaps(info)
-        self.diag.on_received()
+        diag.on_received()
         dropped = None
         with self._cv:
+            if self._stop:
+                return
             if len(self._queue) >= self._qmax:
                 dropped = self._queue.popleft()
                 self.diag.on_dropped()
@@ -194,11 +305,12 @@ class XmetroNode(Node):
         if dropped is not None:
             text = f"the node's processing queue was full ({self._qmax}): scan dropped unjudged"
             self.get_logger().warning(f"{text} (stamp {stamp_to_ns(dropped[0].header.stamp)} ns)")
-            self._publish_quality(self.core.unjudged(dropped[0], "QUEUE_OVERFLOW", text, dropped[1]).quality)
+            self._publish_quality(core.unjudged(dropped[0], "QUEUE_OVERFLOW", text, dropped[1]).quality)
 
     def _update_queue_diag(self) -> None:
         """Caller holds self._cv."""
-        self.diag.on_queue(len(self._queue), int(self._busy is not None))
+        if self.diag is not None:
+            self.diag.on_queue(len(self._queue), int(self._busy is not None))
 
     def _start_worker(self) -> threading.Thread:
         with self._cv:
@@ -232,7 +344,10 @@ class XmetroNode(Node):
                         self._update_queue_diag()
 
     def _process(self, msg: PointCloud2, t0: float, token: object) -> None:
-        out = self.core.judge(msg, t0, deadline=time.monotonic() + float(self.core.values["max_processing_time"]))
+        core = self.core
+        if core is None:
+            return
+        out = core.judge(msg, t0, deadline=time.monotonic() + float(core.values["max_processing_time"]))
         with self._cv:
             if self._token is not token:
                 return  # abandoned by the watchdog: its scan was already answered TIMEOUT
@@ -249,27 +364,34 @@ class XmetroNode(Node):
             self.get_logger().warning(out.log)
         else:
             self.get_logger().debug(out.log)
-        if q.error_code == ScanQuality.ERROR_TIMEOUT:
+        if q.error_code == ScanQuality.ERROR_TIMEOUT and self.diag is not None:
             self.diag.on_timeout()
         self._answer(q)
 
     def _answer(self, q: ScanQuality) -> None:
         """Count a judged scan, publish its quality (with the counters) and /diagnostics on a level change."""
-        before = self.diag.published_level
-        self.diag.on_result(int(q.verdict), q.message, q.processing_latency, bool(q.settings_defaulted))
+        diag = self.diag
+        if diag is None:
+            return
+        before = diag.published_level
+        diag.on_result(int(q.verdict), q.message, q.processing_latency, bool(q.settings_defaulted))
         self._publish_quality(q)
-        if self.diag.level() != before:
+        if diag.level() != before:
             self._publish_diag()
 
     def _publish_quality(self, q: ScanQuality) -> None:
-        for k, v in self.diag.counters().items():
-            setattr(q, k, v)
+        if self.diag is not None:
+            for k, v in self.diag.counters().items():
+                setattr(q, k, v)
         self.pub_quality.publish(q)
 
     def _supervise(self) -> None:
         """Watchdog supervisor (diagnostics timer): flag a scan past ``max_processing_time``; abandon and replace a
         worker past twice the bound (at most one abandoned thread alive: Python cannot kill it)."""
-        bound = float(self.core.values["max_processing_time"])
+        core, diag = self.core, self.diag
+        if core is None or diag is None:
+            return
+        bound = float(core.values["max_processing_time"])
         now = time.monotonic()
         abandoned = None
         with self._cv:
@@ -289,46 +411,94 @@ class XmetroNode(Node):
             if self._abandoned:
                 reason = "; ".join(x for x in (reason, f"{len(self._abandoned)} abandoned worker thread(s) still "
                                                "running (Python cannot stop one; its result will be discarded)") if x)
-        self.diag.set_stalled(reason)
+        diag.set_stalled(reason)
         if abandoned is not None:
             start, msg, t0 = abandoned
             text = (f"processing exceeded max_processing_time {bound:g} s: worker abandoned after "
                     f"{now - start:.1f} s, scan answered unjudged")
             self.get_logger().error(f"watchdog: {text} (stamp {stamp_to_ns(msg.header.stamp)} ns)")
-            self.diag.on_timeout(abandoned_worker=True)
-            self._answer(self.core.unjudged(msg, "TIMEOUT", text, t0).quality)
+            diag.on_timeout(abandoned_worker=True)
+            self._answer(core.unjudged(msg, "TIMEOUT", text, t0).quality)
 
     def _publish_diag(self) -> None:
         self._supervise()
         with self._diag_lock:
             try:
-                self.pub_diag.publish(self.diag.build(self.get_clock().now().to_msg()))
+                if self.diag is not None and self._outputs:
+                    self.pub_diag.publish(self.diag.build(self.get_clock().now().to_msg()))
             except Exception:
                 pass
 
     def _on_explain(self, req: Explain.Request, resp: Explain.Response) -> Explain.Response:
+        assert self.core is not None
         out = self.core.explain(req)
         if not out.success:
             self.get_logger().warning(f"~/explain refused: {out.message}")
         return out
 
     def _on_recommend(self, req: RecommendSettings.Request, resp: RecommendSettings.Response) -> Any:
+        assert self.core is not None
         out = self.core.recommend(req)
         if not out.success:
             self.get_logger().warning(f"~/recommend_settings refused: {out.message}")
         return out
 
+    def _execute_recommend(self, goal: Any) -> Any:
+        """``~/recommend_settings`` action: the service's search with feedback; cancel → CANCELED, a refused
+        request → ABORTED (result success false, message says why)."""
+        from ..recommend import RecommendCancelled, RecommendProgress
+
+        result = RecommendSettingsAction.Result()
+        core = self.core
+        if core is None:
+            goal.abort()
+            result.message = "the node is not configured"
+            return result
+        fb = RecommendSettingsAction.Feedback()
+
+        def progress(p: RecommendProgress) -> None:
+            fb.orientations_evaluated, fb.orientations_total = p.evaluated, p.total
+            fb.orientations_kept, fb.settings_per_orientation = p.kept, p.n_settings
+            fb.elapsed = float(p.elapsed_s)
+            fb.best_p95_abs_error = float(p.best_p95_mm) * 1e-3  # mm → m (inf stays inf)
+            goal.publish_feedback(fb)
+
+        try:
+            out = core.recommend(goal.request, progress, lambda: goal.is_cancel_requested)
+        except RecommendCancelled as e:
+            goal.canceled()
+            result.message = str(e)
+            result.model_id = core.model_id
+            return result
+        for name in RecommendSettings.Response.get_fields_and_field_types():
+            setattr(result, name, getattr(out, name))
+        if out.success:
+            goal.succeed()
+        else:
+            self.get_logger().warning(f"~/recommend_settings action refused: {out.message}")
+            goal.abort()
+        return result
+
     def queue_length(self) -> int:
         return len(self._queue)
+
+
+class XmetroNode(XmetroWiring, Node):
+    """The live node (see the module docstring). Extra keyword arguments go to ``rclpy.node.Node``
+    (``context``, ``parameter_overrides``, ``cli_args``...)."""
+
+    def __init__(self, node_name: str = "xmetro_node", **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
+        self._init_wiring()
+        self._load_core()
+        self._create_outputs(self.create_publisher)
+        self._create_inputs()
+        self._log_ready()
 
     def destroy_node(self) -> None:
         # Also called when __init__ failed part-way (then the worker may not exist): never mask the first error.
         if hasattr(self, "_cv"):
-            with self._cv:
-                self._stop = True
-                self._cv.notify_all()
-        if hasattr(self, "_worker"):
-            self._worker.join(timeout=10.0)
+            self._stop_worker()
         super().destroy_node()
 
 
@@ -343,17 +513,28 @@ def _limit_malloc_arenas(n: int = 2) -> None:
 
 
 def main(args: list[str] | None = None) -> int:
-    """Console script ``xmetro_node`` (``--ros-args --params-file config/xmetro.yaml`` etc.)."""
+    """Console script ``xmetro_node [--localhost-only] --ros-args --params-file config/xmetro.yaml ...``.
+
+    The DDS environment is the caller's (domain, discovery range, RMW, profile, static peers); only
+    ``--localhost-only`` or ``XMETRO_LOCALHOST_ONLY=1`` apply our localhost-only settings (dds_env)."""
+    return run_node(XmetroNode, args)
+
+
+def run_node(factory: Any, args: list[str] | None = None) -> int:
+    """Start rclpy, build ``factory()`` and spin it on a multi-threaded executor until interrupted."""
+    import sys
+
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 
-    from .dds_env import apply_ros_env
+    from .dds_env import apply_requested_ros_env, pop_localhost_flag
 
-    apply_ros_env()
+    argv, flag = pop_localhost_flag(list(sys.argv if args is None else args))
+    apply_requested_ros_env(flag)
     _limit_malloc_arenas()
-    rclpy.init(args=args)
+    rclpy.init(args=argv)
     node = None
     try:
-        node = XmetroNode()
+        node = factory()
         executor = MultiThreadedExecutor(num_threads=3)
         executor.add_node(node)
         executor.spin()

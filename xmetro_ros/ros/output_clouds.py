@@ -1,7 +1,8 @@
 """The node's two output clouds, built byte by byte into buffers the messages adopt (no extra copies).
 
 - ``~/deviations``: one record per (kept) input point, x, y, z as received and the predicted error dx, dy, dz,
-  dnorm (float32, metres), flags (uint16), via :func:`xmetro_ros.ros.cloud.create_cloud_from_arrays`;
+  dnorm (float32, metres), flags (uint16), 2 bytes of padding: point_step 32, every field at an offset aligned
+  to its size in every point (packed, point_step 30 put the floats of odd points at 2 mod 4);
 - ``~/corrected``: the input cloud (same fields, byte order and point layout) with x, y, z + predicted error.
 
 Frames: the input cloud's (``header.frame_id``); lengths in metres as on every topic.
@@ -16,22 +17,46 @@ from typing import Any
 import numpy as np
 from sensor_msgs.msg import PointCloud2, PointField
 
-from .cloud import create_cloud_from_arrays, dtype_from_fields, new_cloud_message
+from .cloud import dtype_from_fields, new_cloud_message
 from .convert import M_PER_MM, mm_to_m
 
-__all__ = ["corrected_cloud", "deviations_cloud"]
+__all__ = ["DEVIATIONS_FIELDS", "DEVIATIONS_POINT_STEP", "corrected_cloud", "deviations_cloud"]
+
+
+#: ``~/deviations`` point layout: (name, offset, PointField datatype); point_step :data:`DEVIATIONS_POINT_STEP`.
+DEVIATIONS_FIELDS = (("x", 0, PointField.FLOAT32), ("y", 4, PointField.FLOAT32), ("z", 8, PointField.FLOAT32),
+                     ("dx", 12, PointField.FLOAT32), ("dy", 16, PointField.FLOAT32), ("dz", 20, PointField.FLOAT32),
+                     ("dnorm", 24, PointField.FLOAT32), ("flags", 28, PointField.UINT16))
+DEVIATIONS_POINT_STEP = 32
 
 
 def deviations_cloud(header: Any, points_m: np.ndarray, dev_mm: np.ndarray, flags: np.ndarray, height: int,
                      width: int) -> PointCloud2:
     """``~/deviations``: ``points_m`` (N, 3) float32 metres as received, ``dev_mm`` (N, 3) predicted error in mm
-    (NaN where none), ``flags`` (N,) uint16; ``height × width = N``."""
+    (NaN where none), ``flags`` (N,) uint16; ``height × width = N``. Layout :data:`DEVIATIONS_FIELDS`, 32 bytes a
+    point (cloud.create_cloud_from_arrays packs fields without padding, hence the structured dtype here)."""
+    n = int(height) * int(width)
+    if points_m.shape[0] != n or dev_mm.shape[0] != n or flags.shape[0] != n:
+        raise ValueError(f"height {height} × width {width} != {points_m.shape[0]} points")
     dev_m = mm_to_m(dev_mm).astype(np.float32)
     dnorm = np.sqrt(np.einsum("ij,ij->i", dev_m, dev_m))
-    return create_cloud_from_arrays(header, {
-        "x": points_m[:, 0], "y": points_m[:, 1], "z": points_m[:, 2],
-        "dx": dev_m[:, 0], "dy": dev_m[:, 1], "dz": dev_m[:, 2], "dnorm": dnorm, "flags": flags,
-    }, height=height, width=width, is_dense=False)
+    fields = [PointField(name=name, offset=off, datatype=code, count=1) for name, off, code in DEVIATIONS_FIELDS]
+    dtype = dtype_from_fields(fields, DEVIATIONS_POINT_STEP)
+    data = array.array("B", b"\0") * (n * DEVIATIONS_POINT_STEP)  # zeroed: the padding bytes are 0
+    if n:
+        view = np.frombuffer(data, dtype=dtype, count=n)
+        for k, name in enumerate("xyz"):
+            view[name] = points_m[:, k]
+            view["d" + name] = dev_m[:, k]
+        view["dnorm"] = dnorm
+        view["flags"] = flags
+        del view
+    cloud = new_cloud_message(header=header, height=int(height), width=int(width),
+                              is_dense=False,
+                              is_bigendian=sys.byteorder == "big", fields=fields,
+                              point_step=DEVIATIONS_POINT_STEP, row_step=DEVIATIONS_POINT_STEP * int(width))
+    cloud.data = data
+    return cloud
 
 
 def corrected_cloud(msg: PointCloud2, dev_mm: np.ndarray, keep: np.ndarray | None, height: int,

@@ -50,8 +50,10 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("max_points", 2_000_000, "points", "largest cloud (width x height) processed", 1, 100_000_000),
     ParamSpec("cloud_overflow", "reject", "", "what to do with a cloud over max_points: reject (ERROR) or decimate "
               "(deterministic stride; verdict at least WARN)", choices=("reject", "decimate")),
-    ParamSpec("reliability", "reliable", "", "QoS reliability of the scan subscription (history depth 5, "
-              "volatile)", choices=("reliable", "best_effort"), read_only=True),
+    ParamSpec("reliability", "best_effort", "", "QoS reliability of the scan subscription (history depth 5, "
+              "volatile; best_effort matches best-effort and reliable publishers; the standard "
+              "qos_overrides./scan.subscription.reliability parameter wins over it)",
+              choices=("reliable", "best_effort"), read_only=True),
     ParamSpec("queue_depth", 4, "scans", "scans waiting for the worker; the oldest is dropped (and counted) "
               "when full", 1, 64, read_only=True),
     ParamSpec("tolerance", 0.0001, "m", "flag OVER_TOLERANCE when the predicted |error| exceeds it", 1e-7, 0.1),
@@ -98,10 +100,13 @@ PARAMS: tuple[ParamSpec, ...] = (
               0.05, 60.0, read_only=True),
 )
 _BY_NAME = {p.name: p for p in PARAMS}
+#: Parameters read when the model is loaded (read-only on the plain node; on the lifecycle node settable while
+#: unconfigured, e.g. ``model_dir`` for a model changeover).
+LOAD_TIME = frozenset(p.name for p in PARAMS if p.read_only)
 
 
-def _descriptor(p: ParamSpec) -> ParameterDescriptor:
-    d = ParameterDescriptor(name=p.name, read_only=p.read_only)
+def _descriptor(p: ParamSpec, writable: bool = False) -> ParameterDescriptor:
+    d = ParameterDescriptor(name=p.name, read_only=p.read_only and not writable)
     unit = f" [{p.unit}]" if p.unit else ""
     choices = f" (one of: {', '.join(p.choices)})" if p.choices else ""
     d.description = f"{p.meaning}{unit}{choices}"
@@ -122,10 +127,11 @@ def _descriptor(p: ParamSpec) -> ParameterDescriptor:
     return d
 
 
-def declare_all(node: Any) -> None:
-    """Declare every parameter of :data:`PARAMS` on ``node`` (values from overrides / params file)."""
+def declare_all(node: Any, writable: tuple[str, ...] | frozenset[str] = ()) -> None:
+    """Declare every parameter of :data:`PARAMS` on ``node`` (values from overrides / params file); the names in
+    ``writable`` are declared without their read-only flag (the lifecycle node guards them itself)."""
     for p in PARAMS:
-        node.declare_parameter(p.name, p.default, _descriptor(p))
+        node.declare_parameter(p.name, p.default, _descriptor(p, p.name in writable))
 
 
 def validate(changes: dict[str, Any], current: dict[str, Any]) -> str | None:

@@ -14,9 +14,9 @@ from typing import Any
 
 import rclpy
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
+from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 
-from .dds_env import apply_ros_env
+from .dds_env import apply_requested_ros_env, ros_env
 
 __all__ = ["NodeProcess", "NodeSpinner", "ServiceTimeoutError", "call_service", "new_context", "wait_for"]
 
@@ -26,8 +26,9 @@ class ServiceTimeoutError(TimeoutError):
 
 
 def new_context(args: list[str] | None = None) -> Context:
-    """A fresh, initialised rclpy context with the localhost-only environment applied."""
-    apply_ros_env()
+    """A fresh, initialised rclpy context; the localhost-only environment is applied when opted in
+    (``XMETRO_LOCALHOST_ONLY=1``, as the tests, demo and benchmarks set), else the caller's DDS environment holds."""
+    apply_requested_ros_env()
     ctx = Context()
     rclpy.init(args=args, context=ctx)
     return ctx
@@ -36,17 +37,20 @@ def new_context(args: list[str] | None = None) -> Context:
 class NodeSpinner:
     """Create a node with ``factory(context)`` and spin it in a daemon thread; ``close()`` shuts all down.
 
-    Usable as a context manager. ``node`` is the created node; ``context`` its private context.
+    Usable as a context manager. ``node`` is the created node; ``context`` its private context. ``threads`` > 1
+    spins it on a MultiThreadedExecutor (as ``xmetro_node`` does: an action's cancel is then served while its goal
+    executes).
     """
 
-    def __init__(self, factory: Callable[[Context], Any]) -> None:
+    def __init__(self, factory: Callable[[Context], Any], threads: int = 1) -> None:
         self.context = new_context()
         try:
             self.node = factory(self.context)
         except Exception:
             self.context.try_shutdown()
             raise
-        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor = (SingleThreadedExecutor(context=self.context) if threads <= 1
+                         else MultiThreadedExecutor(num_threads=threads, context=self.context))
         self.executor.add_node(self.node)
         self._thread = threading.Thread(target=self._spin, name=f"spin-{self.node.get_name()}", daemon=True)
         self._thread.start()
@@ -127,17 +131,22 @@ class NodeProcess:
         domain_id: ROS_DOMAIN_ID for the child (None: this process's, else a fresh one).
         node_name: remaps the node name (``-r __node:=NAME``).
         env: extra environment variables.
+        base_env: the child's whole environment as given (the localhost-only settings are NOT applied, domain_id
+            is ignored): a node started the way an integrator would start it.
     """
 
     def __init__(self, params_file: str | None = None, params: dict[str, Any] | None = None,
                  domain_id: int | None = None, node_name: str | None = None, env: dict[str, str] | None = None,
-                 stop_timeout: float = 10.0) -> None:
+                 stop_timeout: float = 10.0, base_env: dict[str, str] | None = None,
+                 module: str = "xmetro_ros.ros.node") -> None:
         self.params_file = params_file
         self.params = dict(params or {})
         self.domain_id = domain_id
         self.node_name = node_name
         self.extra_env = dict(env or {})
         self.stop_timeout = stop_timeout
+        self.base_env = None if base_env is None else dict(base_env)
+        self.module = module
         self.lines: list[str] = []
         self.proc: Any = None
         self._ready = threading.Event()
@@ -146,7 +155,7 @@ class NodeProcess:
     def command(self) -> list[str]:
         import sys
 
-        cmd = [sys.executable, "-m", "xmetro_ros.ros.node", "--ros-args"]
+        cmd = [sys.executable, "-m", self.module, "--ros-args"]
         if self.params_file:
             cmd += ["--params-file", str(self.params_file)]
         for k, v in self.params.items():
@@ -161,10 +170,9 @@ class NodeProcess:
         import os
         import subprocess
 
-        from .dds_env import ros_env
         from .node import READY_MESSAGE
 
-        env = ros_env(self.domain_id)
+        env = ros_env(self.domain_id) if self.base_env is None else dict(self.base_env)
         env.update(self.extra_env)
         env.setdefault("MALLOC_ARENA_MAX", "2")
         env.setdefault("OMP_NUM_THREADS", "2")
