@@ -261,8 +261,10 @@ def dask_client(scheduler: str | None = None, workers: int | None = None,
             yield client
         return
     n = int(workers or os.cpu_count() or 1)
+    # Every listening socket (scheduler, nannies, workers, dashboard) on the loopback interface.
     with LocalCluster(n_workers=n, threads_per_worker=threads_per_worker, processes=True, host="127.0.0.1",
-                      dashboard_address=None, silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+                      dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR) as cluster, \
+            Client(cluster) as client:
         yield client
 
 
