@@ -208,7 +208,7 @@ def predict_job(job: BagJob, model_dir: str | None = None, params: dict[str, Any
     both renamed to their final names. Never raises: returns the bag's status record (``failed`` + ``error``)."""
     from .predict import predict_bag
 
-    t0 = time.monotonic()
+    t0, c0 = time.monotonic(), time.process_time()
     rec: dict[str, Any] = {"bag": job.bag, "name": job.name, "cell": job.cell, "out": job.out,
                            "worker_pid": os.getpid()}
     out, scans = Path(job.out), Path(job.scans)
@@ -242,6 +242,7 @@ def predict_job(job: BagJob, model_dir: str | None = None, params: dict[str, Any
                 p.unlink(missing_ok=True)
         rec.update(status="failed", error=f"{type(e).__name__}: {e}", scans=0)
     rec["wall_s"] = time.monotonic() - t0
+    rec["cpu_s"] = time.process_time() - c0  # the worker process's CPU time (all its threads) on this bag
     rec["peak_rss_mb"] = _peak_rss_mb()
     return rec
 
