@@ -128,17 +128,18 @@ def _cell_of(bag: Path, cells: list[tuple[str, str]]) -> str:
 
 
 def plan_jobs(bags: list[Path], out_dir: str | Path, cells: list[tuple[str, str]] | None = None) -> list[BagJob]:
-    """One job per bag; output names keep each bag's path relative to the bags' common directory."""
+    """One job per bag (absolute paths); output names keep each bag's path relative to the bags' common
+    directory."""
     if not bags:
         raise FileNotFoundError("no input bags")
-    out_dir = Path(out_dir)
+    out_dir = Path(out_dir).resolve()  # absolute paths: a worker's working directory is not ours
     resolved = [b.resolve() for b in bags]
     common = Path(os.path.commonpath([str(r.parent) for r in resolved]))
     jobs = []
     for b, r in zip(bags, resolved, strict=True):
         rel = r.relative_to(common)
         name = str(rel.with_suffix("")) if rel.suffix == ".mcap" else str(rel)
-        jobs.append(BagJob(bag=str(b), name=name, out=str(out_dir / f"{name}.mcap"),
+        jobs.append(BagJob(bag=str(r), name=name, out=str(out_dir / f"{name}.mcap"),
                            scans=str(out_dir / f"{name}{SCANS_SUFFIX}"), cell=_cell_of(b, cells or [])))
     names = [j.name for j in jobs]
     if len(set(names)) != len(names):
