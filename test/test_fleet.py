@@ -151,3 +151,30 @@ def test_load_data_on_dask_equals_single_process(client):
     for k in ("X", "y", "cloud_id", "oracle", "point_index"):
         assert np.array_equal(getattr(tab, k), getattr(ref, k), equal_nan=True), k
     assert tab.clouds == ref.clouds and m == m_ref
+
+
+def test_train_data_from_bags_via_scheduler_address(client, tmp_path):
+    """``xmetro train --data DIR --scheduler ADDR``: bags read on the workers of an existing cluster (the module's,
+    by address) give the table of the single-process path."""
+    import argparse
+
+    from test_dataset import grid_scan
+
+    from xmetro_ros.apps.train import _load_data_dask, _read_data
+    from xmetro_ros.artifacts import Cylinder, Sphere
+    from xmetro_ros.learn.study import load_data
+    from xmetro_ros.ros.scan_io import write_scans
+    from xmetro_ros.scanner import ScanSettings
+
+    scans = [grid_scan(Sphere(20.0), ScanSettings(6, 3, 0.1)), grid_scan(Cylinder(15.0), ScanSettings(15, 5, 2.0)),
+             grid_scan(Sphere(25.0), ScanSettings(10, 4, 0.5), shift=0.05)]
+    write_scans(tmp_path / "a.mcap", scans[:2], {"part": "a"})
+    write_scans(tmp_path / "b.mcap", scans[2:], {"part": "b"})
+    ref, m_ref = load_data("micro", 0, *_read_data(tmp_path)[:1], source_manifest=_read_data(tmp_path)[1],
+                           log=lambda s: None)
+    args = argparse.Namespace(profile="micro", seed=0, data=str(tmp_path), scheduler=client.scheduler.address,
+                              workers=None)
+    tab, m = _load_data_dask(args)
+    for k in ("X", "y", "cloud_id", "oracle", "point_index"):
+        assert np.array_equal(getattr(tab, k), getattr(ref, k), equal_nan=True), k
+    assert tab.clouds == ref.clouds and m == m_ref and len(tab.clouds) == 3
