@@ -2,10 +2,11 @@
 
 Each input bag is one task that runs :func:`xmetro_ros.apps.predict.predict_bag` — the very function of
 ``xmetro predict`` — on a Dask worker; so an output bag is the one ``xmetro predict`` writes for the same bag,
-model and parameters (byte for byte with ``--deterministic``, which writes ``processing_latency`` = 0: the one
-wall-clock value of the outputs; without it every other field is identical). The scheduler is a local cluster of
-worker processes (one per core by default, ``--workers N``) or an existing cluster (``--scheduler tcp://host:8786``):
-the same code path. Workers must see the input and output paths (a shared file system on a multi-machine cluster).
+model and parameters: byte for byte with ``--deterministic`` (``processing_latency``, the one wall-clock value of
+the outputs, written as 0, and the CDR padding zeroed); without it every field but ``processing_latency``.
+The scheduler is a local cluster of worker processes (one per core by default, ``--workers N``) or an existing
+cluster (``--scheduler tcp://host:8786``): the same code path. Workers must see the input and output paths (a
+shared file system on a multi-machine cluster).
 
 Outputs in ``--out-dir``:
 
