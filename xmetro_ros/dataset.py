@@ -26,7 +26,8 @@ from .scan import Scan
 from .scanner import ScannerModel
 from .targets import errors_with_fit
 
-__all__ = ["DatasetError", "StudySplit", "Table", "build_table", "cloud_split", "study_split"]
+__all__ = ["DatasetError", "StudySplit", "Table", "TablePart", "assemble_table", "build_table", "cloud_split",
+           "sample_rows", "scan_part", "study_split"]
 
 
 class DatasetError(ValueError):
@@ -138,64 +139,89 @@ def cloud_split(table: Table, test_fraction: float = 0.25, seed: int = 0, groups
     return np.flatnonzero(~is_test), np.flatnonzero(is_test)
 
 
+def sample_rows(rng: np.random.Generator, n: int, max_points_per_cloud: int | None) -> np.ndarray | None:
+    """The sorted rows of a prepared scan of ``n`` points kept by ``build_table`` (None: all), drawn from ``rng``
+    (one generator over the scans in order: the draws depend only on the sequence of ``n``)."""
+    if max_points_per_cloud is not None and n > max_points_per_cloud:
+        return np.sort(rng.choice(n, size=int(max_points_per_cloud), replace=False))
+    return None
+
+
+@dataclass
+class TablePart:
+    """One scan's rows of a :class:`Table` (``build_table`` concatenates them in scan order)."""
+
+    X: np.ndarray
+    y: np.ndarray
+    oracle: np.ndarray
+    point_index: np.ndarray
+    cloud: dict[str, Any]
+    oracle_std: np.ndarray
+
+
+def scan_part(scan: Scan, prep: Any, sel: np.ndarray | None, names: Sequence[str], fit_center: bool = False
+              ) -> TablePart:
+    """Features, targets, oracle and cloud record of one prepared scan restricted to rows ``sel``."""
+    n = len(prep)  # kept points before sampling (the cloud record's n_kept)
+    if sel is not None:
+        prep = prep.subset(sel)
+    X = compute_features(list(names), FeatureContext.from_prepared(prep))
+    y, used = errors_with_fit(prep.points, scan.artifact, fit_center)
+    if scan.expected_error is not None:
+        oracle = np.asarray(scan.expected_error, dtype=np.float64).reshape(-1, 3)[prep.index]
+    else:
+        oracle = np.full((len(prep), 3), np.nan)
+    std = np.full((len(prep), 3), np.nan)
+    if scan.noise_std is not None:
+        std = np.asarray(scan.noise_std, dtype=np.float64).reshape(-1, 3)[prep.index]
+        if scan.injected_outlier is not None:
+            std[np.asarray(scan.injected_outlier).reshape(-1)[prep.index]] = np.nan
+    meta = scan.meta or {}
+    return TablePart(X, y, oracle, prep.index, {
+        "label": scan.settings.label(),
+        "settings": scan.settings.as_tuple(),
+        "artifact": used.to_dict(),
+        "n_valid": prep.meta.get("n_valid"),
+        "n_kept": n,
+        "n_outliers": len(prep.outlier),
+        "config_index": meta.get("config_index"),
+        "seed": meta.get("seed"),
+    }, std)
+
+
+def assemble_table(parts: Sequence[TablePart], names: Sequence[str]) -> Table:
+    """The table of the scans' parts, in order (cloud ids 0..n-1)."""
+    if not parts:
+        raise DatasetError("no scans")
+    return Table(
+        X=np.concatenate([p.X for p in parts]),
+        y=np.concatenate([p.y for p in parts]),
+        cloud_id=np.concatenate([np.full(len(p.point_index), k, dtype=np.int32) for k, p in enumerate(parts)]),
+        oracle=np.concatenate([p.oracle for p in parts]),
+        feature_names=list(names),
+        point_index=np.concatenate([p.point_index for p in parts]),
+        clouds=[p.cloud for p in parts],
+        oracle_std=np.concatenate([p.oracle_std for p in parts]),
+    )
+
+
 def build_table(scans: Sequence[Scan], feature_names: Sequence[str], preprocess_cfg: PreprocessConfig | None = None,
                 *, max_points_per_cloud: int | None = 2000, seed: int = 0, fit_center: bool = False,
                 scanner: ScannerModel | None = None) -> Table:
     """Features, targets, oracle and cloud ids for the scans (see module doc). Each scan must carry its
     ``artifact``; ``fit_center`` fits its position first (nominal radius fixed). ``max_points_per_cloud`` None →
-    every kept point. Scans may be a lazy iterable of Scan objects (each is prepared once, then dropped)."""
+    every kept point. Scans may be a lazy iterable of Scan objects (each is prepared once, then dropped).
+    :mod:`xmetro_ros.dataset_dask` builds the same table with the scans spread over Dask workers."""
     names = list(feature_names)
     if not names:
         raise DatasetError("no feature names")
     cfg = preprocess_cfg or PreprocessConfig()
     scanner = scanner or ScannerModel.load()
     rng = np.random.default_rng(seed)
-    xs, ys, cids, oracles, stds, pidx, clouds = [], [], [], [], [], [], []
+    parts = []
     for k, scan in enumerate(scans):
         if scan.artifact is None:
             raise DatasetError(f"scan {k} has no artifact: targets need the nominal shape")
         prep = prepare_scan(scan, cfg, scanner=scanner)
-        n = len(prep)
-        if max_points_per_cloud is not None and n > max_points_per_cloud:
-            sel = np.sort(rng.choice(n, size=int(max_points_per_cloud), replace=False))
-            prep = prep.subset(sel)
-        X = compute_features(names, FeatureContext.from_prepared(prep))
-        y, used = errors_with_fit(prep.points, scan.artifact, fit_center)
-        if scan.expected_error is not None:
-            oracle = np.asarray(scan.expected_error, dtype=np.float64).reshape(-1, 3)[prep.index]
-        else:
-            oracle = np.full((len(prep), 3), np.nan)
-        std = np.full((len(prep), 3), np.nan)
-        if scan.noise_std is not None:
-            std = np.asarray(scan.noise_std, dtype=np.float64).reshape(-1, 3)[prep.index]
-            if scan.injected_outlier is not None:
-                std[np.asarray(scan.injected_outlier).reshape(-1)[prep.index]] = np.nan
-        stds.append(std)
-        xs.append(X)
-        ys.append(y)
-        oracles.append(oracle)
-        cids.append(np.full(len(prep), k, dtype=np.int32))
-        pidx.append(prep.index)
-        meta = scan.meta or {}
-        clouds.append({
-            "label": scan.settings.label(),
-            "settings": scan.settings.as_tuple(),
-            "artifact": used.to_dict(),
-            "n_valid": prep.meta.get("n_valid"),
-            "n_kept": n,
-            "n_outliers": len(prep.outlier),
-            "config_index": meta.get("config_index"),
-            "seed": meta.get("seed"),
-        })
-    if not xs:
-        raise DatasetError("no scans")
-    return Table(
-        X=np.concatenate(xs),
-        y=np.concatenate(ys),
-        cloud_id=np.concatenate(cids),
-        oracle=np.concatenate(oracles),
-        feature_names=names,
-        point_index=np.concatenate(pidx),
-        clouds=clouds,
-        oracle_std=np.concatenate(stds),
-    )
+        parts.append(scan_part(scan, prep, sample_rows(rng, len(prep), max_points_per_cloud), names, fit_center))
+    return assemble_table(parts, names)

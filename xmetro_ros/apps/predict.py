@@ -130,6 +130,8 @@ def predict_bag(
     node_name: str = "xmetro_node",
     log: Any = None,
     include: tuple[str, ...] = ("inputs", "deviations", "corrected"),
+    keep_clouds: bool = True,
+    deterministic: bool = False,
 ) -> PredictResult:
     """Judge every scan of ``bag`` as the live node would and write the outputs to ``out`` (.mcap).
 
@@ -143,6 +145,11 @@ def predict_bag(
         log: callable for one line per scan.
         include: what to write besides ``~/quality``: ``inputs`` (/scan, /scanner_settings), ``deviations``,
             ``corrected`` (the goldens keep only quality and deviations).
+        keep_clouds: False → ``PredictResult.outputs`` keeps only each scan's ScanQuality (deviations and corrected
+            None): memory stays bounded by one scan whatever the bag's length (``xmetro fleet predict``).
+        deterministic: True → ``ScanQuality.processing_latency`` is written as 0.0, the one wall-clock value of
+            the outputs, and the messages' CDR padding as zeros (:mod:`xmetro_ros.ros.cdr_canonical`), so the same
+            bag, model and parameters give the same output file byte for byte.
 
     Raises:
         PredictError: no model (the reason), no input scans. FileNotFoundError / BagFormatError: unreadable bag.
@@ -151,6 +158,7 @@ def predict_bag(
     from ..bag import qos_profiles
     from ..bag.reader import BagReader
     from ..bag.writer import BagWriter
+    from ..ros.cdr_canonical import canonical_cdr
     from ..ros.core import XmetroCore
 
     t_start = time.monotonic()
@@ -176,6 +184,7 @@ def predict_bag(
         res.notes.append(f"the bag has no {SETTINGS_TYPE} messages: every scan used the configured default settings "
                          f"(default_* parameters, head {core.scanner.standoff_mm:g} mm above the frame origin, "
                          "looking down); ScanQuality.settings_defaulted = true")
+    enc = canonical_cdr if deterministic else (lambda msg: msg)
     ns = "/" + node_name.strip("/")
     out_topics = {"quality": f"{ns}/quality", "deviations": f"{ns}/deviations", "corrected": f"{ns}/corrected"}
     with BagWriter(out, compression="zstd") as w:
@@ -198,11 +207,14 @@ def predict_bag(
             if "inputs" in include:
                 w.write("/scan", m.raw, m.log_time_ns)
             o = core.judge(m.msg)
+            if deterministic:
+                o.quality.processing_latency = 0.0
             for kind in ("deviations", "corrected"):
                 if kind in include and getattr(o, kind) is not None:
-                    w.write(out_topics[kind], getattr(o, kind), m.log_time_ns)
-            w.write(out_topics["quality"], o.quality, m.log_time_ns)
-            res.outputs.append(OutputSet(o.quality, o.deviations, o.corrected))
+                    w.write(out_topics[kind], enc(getattr(o, kind)), m.log_time_ns)
+            w.write(out_topics["quality"], enc(o.quality), m.log_time_ns)
+            res.outputs.append(OutputSet(o.quality, o.deviations if keep_clouds else None,
+                                         o.corrected if keep_clouds else None))
             res.inputs.append(m.topic)
             if log is not None:
                 log(f"#{len(res.outputs) - 1} {m.topic}: {o.log}")
@@ -230,6 +242,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--model", default=None, metavar="DIR", help="model directory (default: the shipped model)")
     p.add_argument("--topic", action="append", help="PointCloud2 topic to judge (repeatable; default: all inputs)")
     p.add_argument("--param", action="append", metavar="NAME=VALUE", help="node parameter override (repeatable)")
+    p.add_argument("--deterministic", action="store_true",
+                   help="processing_latency written as 0 and CDR padding zeroed: identical bytes run after run")
     p.set_defaults(func=run)
 
 
@@ -239,7 +253,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         res = predict_bag(args.bag, args.out, model_dir=args.model, params=_parse_params(args.param),
-                          topics=args.topic)
+                          topics=args.topic, deterministic=getattr(args, "deterministic", False))
     except (PredictError, BagFormatError, OSError) as e:
         print(f"xmetro predict: error: {e}", file=sys.stderr)
         return 1

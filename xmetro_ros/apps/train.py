@@ -27,6 +27,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--families", default=",".join(FAMILIES), help=f"comma-separated subset of {','.join(FAMILIES)}")
     p.add_argument("--threads", type=int, default=1, help="threads per fit (torch, BLAS, CatBoost)")
+    p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                   help="prepare the data (simulate/read, pre-process, features, targets) on this Dask cluster")
+    p.add_argument("--workers", type=int, default=None,
+                   help="prepare the data on a local Dask cluster of this many worker processes (same table)")
     p.set_defaults(func=run_train)
 
     e = subparsers.add_parser("export-default", help="train (or copy) the default model set shipped in the package")
@@ -60,8 +64,11 @@ def run_train(args: argparse.Namespace) -> int:
 
     try:
         fams = _families(args.families)
-        scans, source = _read_data(args.data) if args.data else (None, None)
-        table, manifest = load_data(args.profile, args.seed, scans=scans, source_manifest=source)
+        if args.scheduler or args.workers:
+            table, manifest = _load_data_dask(args)
+        else:
+            scans, source = _read_data(args.data) if args.data else (None, None)
+            table, manifest = load_data(args.profile, args.seed, scans=scans, source_manifest=source)
         metrics = run_study(table, manifest, args.profile, args.seed, args.out, families=fams,
                             threads=args.threads, card_extra={"scanner": _scanner_card()})
     except (ValueError, FileNotFoundError) as e:
@@ -130,10 +137,7 @@ def _read_data(data: str | Path) -> tuple[list[Any], dict[str, Any]]:
     """Scans of ``--data`` (a bag written by ``xmetro simulate`` or a directory of them) and their manifest."""
     from ..ros.scan_io import read_manifest, read_scans
 
-    d = Path(data)
-    files = sorted(d.glob("*.mcap")) if d.is_dir() else [d]
-    if not files:
-        raise FileNotFoundError(f"no .mcap scans in {d}")
+    files = _data_files(data)
     scans: list[Any] = []
     manifest: dict[str, Any] = {}
     for f in files:
@@ -148,3 +152,44 @@ def _scanner_card() -> dict[str, str]:
 
     sc = ScannerModel.load()
     return {"id": sc.id, "serial": sc.serial, "description": sc.source, "virtual": "true"}
+
+
+class BagScans:
+    """A Dask source: the scans of one bag written by ``xmetro simulate``, read on the worker."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = str(path)
+
+    def __call__(self) -> list[Any]:
+        from ..ros.scan_io import read_scans
+
+        return read_scans(self.path)
+
+    def __repr__(self) -> str:
+        return f"BagScans({self.path!r})"
+
+
+def _data_files(data: str | Path) -> list[Path]:
+    d = Path(data)
+    files = sorted(d.glob("*.mcap")) if d.is_dir() else [d]
+    if not files:
+        raise FileNotFoundError(f"no .mcap scans in {d}")
+    return files
+
+
+def _load_data_dask(args: argparse.Namespace) -> tuple[Any, dict[str, Any]]:
+    """``load_data`` with the data preparation on Dask (``--scheduler`` or a local ``--workers`` cluster)."""
+    from ..learn.study import load_data
+    from ..ros.scan_io import read_manifest
+    from .fleet import dask_client
+
+    sources, source = None, None
+    if args.data:
+        files = _data_files(args.data)
+        manifest: dict[str, Any] = {}
+        for f in files:
+            manifest = read_manifest(f) or manifest
+        sources = [BagScans(f.resolve()) for f in files]
+        source = {"source": "files", "files": [f.name for f in files], "campaign": manifest}
+    with dask_client(args.scheduler, args.workers) as client:
+        return load_data(args.profile, args.seed, source_manifest=source, client=client, sources=sources)

@@ -36,15 +36,19 @@ SPLIT_DOC = {
 
 def load_data(profile: str = "quick", seed: int = 0, scans: list[Any] | None = None,
               source_manifest: dict | None = None, effects: dict | None = None,
-              log: Callable[[str], None] = print) -> tuple[Any, dict]:
+              log: Callable[[str], None] = print, client: Any = None,
+              sources: list[Callable[[], list[Any]]] | None = None) -> tuple[Any, dict]:
     """Build the point table: from given ``scans`` (e.g. read from bags by ``xmetro train --data``, with their
-    ``source_manifest``), or by simulating the profile's campaign with ``seed``. Returns (table, manifest)."""
+    ``source_manifest``), or by simulating the profile's campaign with ``seed``. Returns (table, manifest).
+
+    With a Dask ``client`` the scans are simulated (or read: ``sources``, callables returning scans, e.g. one per
+    bag) and prepared on its workers by :func:`xmetro_ros.dataset_dask.build_table_dask`: the same table."""
     from ..dataset import build_table
     from ..features import STUDY_FEATURES
     from ..preprocess import PreprocessConfig
 
     prof = get_profile(profile)
-    if scans is not None:
+    if sources is not None or scans is not None:
         manifest = dict(source_manifest or {"source": "scans"})
     else:
         from ..sim.campaign import campaign_manifest, study_campaign
@@ -52,15 +56,29 @@ def load_data(profile: str = "quick", seed: int = 0, scans: list[Any] | None = N
         kw = dict(prof.campaign)
         items = study_campaign(seed=seed, effects=effects, **kw)[:: prof.campaign_stride]
         t0 = time.perf_counter()
-        scans = [it.simulate() for it in _progress(items, "simulate", "scan")]
-        log(f"simulated {len(scans)} scans in {time.perf_counter() - t0:.1f} s")
-        manifest = {"source": "simulated", "campaign_stride": prof.campaign_stride, "n_scans": len(scans),
+        if client is None:
+            scans = [it.simulate() for it in _progress(items, "simulate", "scan")]
+            log(f"simulated {len(scans)} scans in {time.perf_counter() - t0:.1f} s")
+        else:
+            from ..dataset_dask import SimulateItems
+
+            sources = [SimulateItems([it]) for it in items]  # simulated on the workers
+        manifest = {"source": "simulated", "campaign_stride": prof.campaign_stride, "n_scans": len(items),
                     "campaign_args": {k: list(v) if isinstance(v, tuple) else v for k, v in kw.items()},
                     "campaign": campaign_manifest(items, seed=seed, effects=effects)}
-    if not scans:
-        raise ValueError("the data set has no scans")
     t0 = time.perf_counter()
-    table = build_table(scans, list(STUDY_FEATURES), PreprocessConfig())
+    if client is not None:
+        from ..dataset_dask import ScanList, build_table_dask
+
+        if sources is None:
+            sources = [ScanList([s]) for s in scans or []]
+        if not sources:
+            raise ValueError("the data set has no scans")
+        table = build_table_dask(sources, list(STUDY_FEATURES), client, PreprocessConfig(), progress=log)
+    else:
+        if not scans:
+            raise ValueError("the data set has no scans")
+        table = build_table(scans, list(STUDY_FEATURES), PreprocessConfig())
     log(f"feature table: {len(table.X)} points x {len(table.feature_names)} features "
         f"({time.perf_counter() - t0:.1f} s)")
     return table, manifest

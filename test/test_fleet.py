@@ -1,0 +1,184 @@
+"""`xmetro fleet predict` and the learning table on Dask: a local cluster of 2 worker processes (loopback only)
+gives the single-process results — the same output bags byte for byte, the same tables array for array; a corrupt
+bag is reported and the others complete; a second run resumes (done bags skipped)."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from xmetro_ros.apps import fleet
+from xmetro_ros.apps.predict import predict_bag
+from xmetro_ros.ros.node_outputs import read_outputs
+
+ROOT = Path(__file__).resolve().parents[1]
+DEMO = ROOT / "bags" / "demo.mcap"
+REGRESSION = ROOT / "bags" / "regression.mcap"
+
+pytestmark = pytest.mark.timeout(300)
+
+
+@pytest.fixture(scope="module")
+def client():
+    with fleet.dask_client(workers=2) as c:
+        assert len(c.scheduler_info()["workers"]) == 2
+        assert all(a.startswith("tcp://127.0.0.1:") for a in c.scheduler_info()["workers"])
+        yield c
+
+
+@pytest.fixture(scope="module")
+def fleet_dir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("fleet")
+    inp = d / "in"
+    (inp / "cellA").mkdir(parents=True)
+    (inp / "cellB").mkdir()
+    shutil.copy(DEMO, inp / "cellA" / "day1.mcap")
+    shutil.copy(REGRESSION, inp / "cellB" / "day1.mcap")  # same name, other cell: no collision
+    shutil.copy(DEMO, inp / "cellB" / "day2.mcap")
+    rng = np.random.default_rng(0)
+    (inp / "cellA" / "garbage.mcap").write_bytes(rng.integers(0, 256, 50_000, dtype=np.uint8).tobytes())
+    data = DEMO.read_bytes()
+    (inp / "cellA" / "truncated.mcap").write_bytes(data[: len(data) // 2])  # a recording cut off mid-write
+    return d
+
+
+def test_find_and_plan(fleet_dir):
+    inp = fleet_dir / "in"
+    bags = fleet.find_bags([str(inp / "cellA"), str(inp / "cellB" / "*.mcap")])
+    assert [b.name for b in bags] == ["day1.mcap", "garbage.mcap", "truncated.mcap", "day1.mcap", "day2.mcap"]
+    jobs = fleet.plan_jobs(bags, fleet_dir / "out", [("*cellB/day2*", "line7")])
+    assert [j.name for j in jobs] == ["cellA/day1", "cellA/garbage", "cellA/truncated", "cellB/day1", "cellB/day2"]
+    assert [j.cell for j in jobs] == ["cellA", "cellA", "cellA", "cellB", "line7"]
+    with pytest.raises(FileNotFoundError):
+        fleet.find_bags([str(inp / "nope*.mcap")])
+
+
+def test_fleet_predict_identical_to_single_process_and_resumes(client, fleet_dir, tmp_path):
+    out = fleet_dir / "out"
+    jobs = fleet.plan_jobs(fleet.find_bags([str(fleet_dir / "in")]), out)
+    lines: list[str] = []
+    res = fleet.run_fleet(jobs, client, out, deterministic=True, log=lines.append)
+    status = {b["name"]: b for b in res.bags}
+    assert {k: v["status"] for k, v in status.items()} == {
+        "cellA/day1": "done", "cellA/garbage": "failed", "cellA/truncated": "damaged", "cellB/day1": "done",
+        "cellB/day2": "done"}
+    assert "not an MCAP file" in status["cellA/garbage"]["error"]
+    assert status["cellA/truncated"]["losses"]  # what was lost is reported, what was readable is judged
+    assert res.workers == 2 and len({b["worker_pid"] for b in res.bags}) == 2  # both workers took bags
+    assert len(lines) == 5 and all(f"/{len(jobs)}]" in s for s in lines)  # one progress line per bag
+    assert not (out / "cellA" / "garbage.mcap").exists()
+
+    # The single-process path (xmetro predict), into the same file names: the same bytes.
+    for name, src in [("cellA/day1", DEMO), ("cellB/day1", REGRESSION), ("cellB/day2", DEMO)]:
+        ref = tmp_path / name
+        ref.parent.mkdir(parents=True, exist_ok=True)
+        single = predict_bag(src, ref.with_suffix(".mcap"), deterministic=True)
+        assert (out / f"{name}.mcap").read_bytes() == ref.with_suffix(".mcap").read_bytes(), name
+        assert status[name]["scans"] == len(single.outputs)
+
+    # The summary: one row per judged scan, the ScanQuality values of the output bags.
+    df = pd.read_parquet(res.summary)
+    import dask.dataframe as dd
+
+    pd.testing.assert_frame_equal(dd.read_parquet(res.summary).compute().reset_index(drop=True), df,
+                                  check_dtype=False)  # dask reads strings with pd.NA as missing value
+    assert len(df) == sum(b["scans"] for b in res.bags) and set(df["bag"]) == set(status) - {"cellA/garbage"}
+    for name in ("cellB/day1", "cellA/truncated"):
+        qs = [o.quality for o in read_outputs(out / f"{name}.mcap")]
+        d = df[df["bag"] == name].sort_values("scan")
+        assert len(d) == len(qs) > 0
+        for a, axis in enumerate(fleet.AXES):
+            assert np.array_equal(d[f"p95_abs_error_{axis}"].to_numpy(), [q.p95_abs_error[a] for q in qs])
+            assert np.array_equal(d[f"mean_abs_error_{axis}"].to_numpy(), [q.mean_abs_error[a] for q in qs])
+        assert d["verdict"].tolist() == [int(q.verdict) for q in qs]
+        assert d["points_received"].tolist() == [int(q.points_received) for q in qs]
+        assert d["settings_exposure_time"].tolist() == [q.settings.exposure_time for q in qs]
+        assert (d["cell"] == name.split("/")[0]).all() and (d["processing_latency"] == 0.0).all()
+        assert d["time"].dt.tz is not None
+    html = res.overview.read_text()
+    assert "data:image/png;base64," in html and "cellA/garbage" in html and "failed" in html
+
+    # Resume: the done bags are skipped (files untouched), the failed one is tried again.
+    mtime = (out / "cellA" / "day1.mcap").stat().st_mtime_ns
+    res2 = fleet.run_fleet(jobs, client, out, deterministic=True)
+    assert {b["name"]: b["status"] for b in res2.bags} == {
+        "cellA/day1": "skipped", "cellA/garbage": "failed", "cellA/truncated": "skipped", "cellB/day1": "skipped",
+        "cellB/day2": "skipped"}
+    assert (out / "cellA" / "day1.mcap").stat().st_mtime_ns == mtime
+    assert len(pd.read_parquet(res2.summary)) == len(df)
+
+
+def test_fleet_cli(fleet_dir, tmp_path, capsys):
+    from xmetro_ros.apps.cli import main
+
+    out = tmp_path / "out"
+    rc = main(["fleet", "predict", str(fleet_dir / "in" / "cellB"), "--out-dir", str(out), "--workers", "1",
+               "--param", "inference_threads=1"])
+    assert rc == 0
+    assert "2 done" in capsys.readouterr().out
+    assert len(pd.read_parquet(out / "summary.parquet")) == 8
+    assert main(["fleet", "predict", str(fleet_dir / "in"), "--out-dir", str(out), "--param", "nope=1"]) == 2
+
+
+def test_build_table_dask_equals_build_table(client):
+    from test_dataset import grid_scan
+
+    from xmetro_ros import dataset as D
+    from xmetro_ros.artifacts import Cylinder, Sphere
+    from xmetro_ros.dataset_dask import ScanList, build_table_dask
+    from xmetro_ros.features import STUDY_FEATURES
+    from xmetro_ros.scanner import ScanSettings
+
+    scans = [grid_scan(Sphere(20.0), ScanSettings(6, 3, 0.1)),
+             grid_scan(Sphere(20.0), ScanSettings(10, 4, 0.5), shift=0.05),
+             grid_scan(Cylinder(15.0), ScanSettings(15, 5, 2.0)),
+             grid_scan(Sphere(25.0), ScanSettings(8, 3, 1.0), h=30)]
+    names = [*STUDY_FEATURES, "field_intensity"]
+    ref = D.build_table(scans, names, max_points_per_cloud=700, seed=3)
+    for sources in ([ScanList(scans[:1]), ScanList(scans[1:3]), ScanList(scans[3:])], [ScanList([s]) for s in scans]):
+        tab = build_table_dask(sources, names, client, max_points_per_cloud=700, seed=3)
+        for k in ("X", "y", "cloud_id", "oracle", "point_index"):
+            assert np.array_equal(getattr(tab, k), getattr(ref, k), equal_nan=True), k
+        assert tab.clouds == ref.clouds and tab.feature_names == ref.feature_names
+    assert len(ref) < sum(s.points.reshape(-1, 3).shape[0] for s in scans)  # sampling took place
+
+
+def test_load_data_on_dask_equals_single_process(client):
+    from xmetro_ros.learn.study import load_data
+
+    ref, m_ref = load_data("micro", 0, log=lambda s: None)
+    tab, m = load_data("micro", 0, client=client, log=lambda s: None)
+    for k in ("X", "y", "cloud_id", "oracle", "point_index"):
+        assert np.array_equal(getattr(tab, k), getattr(ref, k), equal_nan=True), k
+    assert tab.clouds == ref.clouds and m == m_ref
+
+
+def test_train_data_from_bags_via_scheduler_address(client, tmp_path):
+    """``xmetro train --data DIR --scheduler ADDR``: bags read on the workers of an existing cluster (the module's,
+    by address) give the table of the single-process path."""
+    import argparse
+
+    from test_dataset import grid_scan
+
+    from xmetro_ros.apps.train import _load_data_dask, _read_data
+    from xmetro_ros.artifacts import Cylinder, Sphere
+    from xmetro_ros.learn.study import load_data
+    from xmetro_ros.ros.scan_io import write_scans
+    from xmetro_ros.scanner import ScanSettings
+
+    scans = [grid_scan(Sphere(20.0), ScanSettings(6, 3, 0.1)), grid_scan(Cylinder(15.0), ScanSettings(15, 5, 2.0)),
+             grid_scan(Sphere(25.0), ScanSettings(10, 4, 0.5), shift=0.05)]
+    write_scans(tmp_path / "a.mcap", scans[:2], {"part": "a"})
+    write_scans(tmp_path / "b.mcap", scans[2:], {"part": "b"})
+    ref, m_ref = load_data("micro", 0, *_read_data(tmp_path)[:1], source_manifest=_read_data(tmp_path)[1],
+                           log=lambda s: None)
+    args = argparse.Namespace(profile="micro", seed=0, data=str(tmp_path), scheduler=client.scheduler.address,
+                              workers=None)
+    tab, m = _load_data_dask(args)
+    for k in ("X", "y", "cloud_id", "oracle", "point_index"):
+        assert np.array_equal(getattr(tab, k), getattr(ref, k), equal_nan=True), k
+    assert tab.clouds == ref.clouds and m == m_ref and len(tab.clouds) == 3
