@@ -153,7 +153,8 @@ def _centre(art, direction):
 def oracle_runs(scanner):
     """For each region: the oracle-driven recommendation and the re-simulated actual error of every candidate."""
     lv = scanner.settings_levels
-    cands = [ScanSettings(a, b, c) for a in (6.0, 15.0) for b in (3.0, 5.0) for c in lv["exposure_ms"]]
+    # 6 settings (coarse and fine grids x the 3 exposures) x 27 orientations per region keeps the test near a minute
+    cands = [ScanSettings(a, b, c) for a, b in ((6.0, 3.0), (15.0, 5.0)) for c in lv["exposure_ms"]]
     runs = []
     for i, (art, st, direction) in enumerate(REGIONS):
         judged = simulate_scan(art, ScanSettings(*st), scanner=scanner, seed=900 + i)
@@ -184,6 +185,7 @@ def test_oracle_ranking_holds_when_followed(oracle_runs):
         noise = 3 * max(ver.before.p95_spread_mm, ver.after.p95_spread_mm, 1e-4)
         assert ver.after.p95_mm <= ver.before.p95_mm + noise, (rec.note, ver.before, ver.after)
     ratios = np.array(ratios)
+    print("actual p95 after / best actual p95:", np.round(ratios, 3))
     assert len(ratios) >= 8
     assert ratios.max() <= 1.25, ratios
     assert np.median(ratios) <= 1.1, ratios
@@ -195,6 +197,7 @@ def test_oracle_predicted_figures(oracle_runs):
     for _rec, ver in oracle_runs:
         rel.append(ver.after.predicted_p95_mm / ver.after.p95_mm - 1)
         rho.append(ver.rank_correlation())
+    print("predicted/actual - 1:", np.round(rel, 3), "rank correlation:", np.round(rho, 3))
     assert np.max(np.abs(rel)) <= 0.3, rel
     assert np.median(rho) >= 0.7, rho
 

@@ -80,6 +80,7 @@ class Candidate:
     score_unc_mm: float = 0.0
     u_p95_mm: float = 0.0
     out_of_domain: float = 0.0
+    predicted_p95_mm: float | None = None  # p95 of |d + r|, r ~ N(0, (U / 1.96)²) per axis: vs the actual p95
 
     @property
     def quaternion(self) -> np.ndarray:
@@ -157,19 +158,31 @@ def p95_interval_halfwidth(values: np.ndarray) -> np.ndarray:
     return (v[..., hi] - v[..., lo]) / 2.0
 
 
-def _scores(pred: np.ndarray, unc: np.ndarray | None, covered: np.ndarray
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per candidate (S,): mean |d|, p95 |d|, p95 (|d| + |U|), its CI half-width, p95 |U| over covered points."""
+N_DRAWS = 8  # draws per point of the predicted error distribution (the predicted p95 of the actual error)
+
+
+def _scores(pred: np.ndarray, unc: np.ndarray | None, covered: np.ndarray, z: np.ndarray | None = None
+            ) -> tuple[np.ndarray, ...]:
+    """Per candidate (S,): mean |d|, p95 |d|, p95 (|d| + |U|), its CI half-width, p95 |U|, and the p95 of |d + r|
+    with r ~ N(0, (U / 1.96)²) per axis (``z``: (N_DRAWS, m, 3) standard normal draws, the same for every
+    candidate so that they compare on common random numbers) over covered points."""
     mean, p95 = _stats(pred, covered)
     d = np.sqrt(np.einsum("...ij,...ij->...i", pred[..., covered, :], pred[..., covered, :]))
+    empty = np.full(pred.shape[:-2], np.inf)
     if unc is None:
-        t, u95 = d, np.zeros(pred.shape[:-2])
-    else:
-        u = np.sqrt(np.einsum("...ij,...ij->...i", unc[..., covered, :], unc[..., covered, :]))
-        t = d + u
-        u95 = np.percentile(u, 95, axis=-1) if u.shape[-1] else np.full(pred.shape[:-2], np.inf)
-    tot = p95 if unc is None else (np.percentile(t, 95, axis=-1) if t.shape[-1] else np.full(p95.shape, np.inf))
-    return mean, p95, tot, p95_interval_halfwidth(t), u95
+        return mean, p95, p95, p95_interval_halfwidth(d), np.zeros(pred.shape[:-2]), p95
+    if not d.shape[-1]:
+        return mean, p95, empty, empty, empty, empty
+    uc = unc[..., covered, :]
+    u = np.sqrt(np.einsum("...ij,...ij->...i", uc, uc))
+    t = d + u
+    if z is None:
+        z = np.random.default_rng(0).standard_normal((N_DRAWS, *uc.shape[-2:]))
+    # (S, D, m, 3): the predicted error of every point in D draws
+    e = pred[..., None, covered, :] + (uc / 1.96)[..., None, :, :] * z[:, covered]
+    en = np.sqrt(np.einsum("...ij,...ij->...i", e, e)).reshape(*pred.shape[:-2], -1)
+    return (mean, p95, np.percentile(t, 95, axis=-1), p95_interval_halfwidth(t), np.percentile(u, 95, axis=-1),
+            np.percentile(en, 95, axis=-1))
 
 
 UncertaintyFn = Callable[[Any, np.ndarray], np.ndarray]
@@ -258,9 +271,11 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
     cov_before = coverage_mask(sub, grazing_incidence_deg, grazing_view_deg)
     Xb = np.asarray(before_features[rows], dtype=np.float32)[None]
     pred_before = np.asarray(model_set.predict(Xb[0]), dtype=np.float64)[None]
-    mb, pb, tb, ub, u95b = _scores(pred_before, predict_unc(Xb), cov_before)
+    # common random numbers for the predicted error distribution: one deterministic draw set for all candidates
+    z = np.random.default_rng(0).standard_normal((N_DRAWS, len(rows), 3))
+    mb, pb, tb, ub, u95b, eb = _scores(pred_before, predict_unc(Xb), cov_before, z)
     before = Candidate(settings, np.eye(3), pose, float(mb[0]), float(pb[0]), float(cov_before.mean()),
-                       float(tb[0]), float(ub[0]), float(u95b[0]), float(ood_share(Xb, cov_before)[0]))
+                       float(tb[0]), float(ub[0]), float(u95b[0]), float(ood_share(Xb, cov_before)[0]), float(eb[0]))
     need = min(min_coverage, before.coverage) - 1e-12
 
     dep = [j for j, n in enumerate(names) if "settings" in tuple(REGISTRY.get(n).inputs)]
@@ -295,14 +310,14 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
         step = max(1, batch_rows // m)
         pred = np.concatenate([np.asarray(model_set.predict_batch(X[i:i + step]), dtype=np.float64)
                                for i in range(0, len(X), step)])
-        means, p95s, tots, uncs, u95s = _scores(pred, predict_unc(X), cov)
+        means, p95s, tots, uncs, u95s, e95s = _scores(pred, predict_unc(X), cov, z)
         ood = ood_share(X, cov)
         for k, s in enumerate(cands):
             if ood[k] > max_out_of_domain:
                 n_ood += 1
                 continue
             ranked.append(Candidate(s, r, pose_o, float(means[k]), float(p95s[k]), float(cov.mean()),
-                                    float(tots[k]), float(uncs[k]), float(u95s[k]), float(ood[k])))
+                                    float(tots[k]), float(uncs[k]), float(u95s[k]), float(ood[k]), float(e95s[k])))
     if not ranked:
         if n_ood:
             raise ValueError(f"all {n_ood} candidates keeping the coverage lie outside the model's domain "

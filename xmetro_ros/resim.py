@@ -274,6 +274,12 @@ def resimulate_many(truth: GroundTruth, region: Region, setups: Sequence[tuple[S
     return out
 
 
+def _predicted(c: Any) -> float | None:
+    """A candidate's predicted p95 of the actual |error|: its ``predicted_p95_mm`` (distribution), else its score."""
+    v = getattr(c, "predicted_p95_mm", None)
+    return v if v is not None else getattr(c, "score_mm", None)
+
+
 def verify(truth: GroundTruth, region: Region, rec: Any, *, n_seeds: int = 3, all_candidates: bool = False,
            candidate_seeds: int = 2) -> Verification:
     """Re-simulate the current set-up and the recommendation ``rec`` (a ``recommend.Recommendation``: its
@@ -284,7 +290,7 @@ def verify(truth: GroundTruth, region: Region, rec: Any, *, n_seeds: int = 3, al
 
     def one(c: Any) -> ActualError:
         a = resimulate(truth, region, c.settings, c.pose, seeds=seeds, reference=ref,
-                       predicted_p95_mm=getattr(c, "score_mm", None))
+                       predicted_p95_mm=_predicted(c))
         a.rotation = getattr(c, "rotation", None)
         return a
 
@@ -293,7 +299,7 @@ def verify(truth: GroundTruth, region: Region, rec: Any, *, n_seeds: int = 3, al
     best = None
     if all_candidates:
         cands = resimulate_many(truth, region, [(c.settings, c.pose) for c in rec.ranked], n_seeds=candidate_seeds,
-                                predicted=[c.score_mm for c in rec.ranked],
+                                predicted=[_predicted(c) for c in rec.ranked],
                                 rotations=[c.rotation for c in rec.ranked])
         best = min(cands, key=lambda a: a.p95_mm)
     return Verification(before, after, cands, best)
