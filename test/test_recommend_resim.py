@@ -193,11 +193,13 @@ def test_oracle_ranking_holds_when_followed(oracle_runs):
 
 def test_oracle_predicted_figures(oracle_runs):
     """With the simulator's truth as the model, the score predicts the actual p95 and ranks like it."""
-    rel, rho = [], []
-    for _rec, ver in oracle_runs:
+    rel, rho, score = [], [], []
+    for rec, ver in oracle_runs:
         rel.append(ver.after.predicted_p95_mm / ver.after.p95_mm - 1)
+        score.append(rec.best.score_mm / ver.after.p95_mm - 1)
         rho.append(ver.rank_correlation())
-    print("predicted/actual - 1:", np.round(rel, 3), "rank correlation:", np.round(rho, 3))
+    print("predicted/actual - 1:", np.round(rel, 3), "score/actual - 1:", np.round(score, 3),
+          "rank correlation:", np.round(rho, 3))
     assert np.max(np.abs(rel)) <= 0.3, rel
     assert np.median(rho) >= 0.7, rho
 
