@@ -22,6 +22,8 @@ AREAS: dict[str, tuple[str, str]] = {
     "predict": ("xmetro_ros.apps.predict", "judge a bag's scans offline, as the live node would"),
     "demo": ("xmetro_ros.apps.demo", "start a node, replay bags/demo.mcap, write out/demo/report.html"),
     "loop": ("xmetro_ros.apps.loop", "trace the residual of the model to an undeclared effect and add it"),
+    "verify-recommend": ("xmetro_ros.apps.verify_recommend",
+                         "follow the rescan recommendation in the virtual scanner: predicted vs actual error"),
 }
 
 
