@@ -302,3 +302,17 @@ def test_resimulate_many_shares_seeds(scanner):
     assert a.p95_mm == b.p95_mm and a.n_seeds == 2 and a.predicted_p95_mm == 0.01 and b.predicted_p95_mm is None
     with pytest.raises(ValueError, match="ball"):
         Region(centre=np.zeros(3), radius_mm=0.0)
+
+
+def test_scan_grid_window_keeps_the_full_grids_rays(scanner):
+    from xmetro_ros.sim.scanner_sim import scan_grid
+
+    art, st = Sphere(22.5), ScanSettings(10.0, 4.0, 0.5)
+    full = scan_grid(art, st, scanner)
+    win = scan_grid(art, st, scanner, full.pose, window=(5.0, 12.0, -3.0, 4.0))
+    assert set(np.round(win.s * 1e6).astype(int)) <= set(np.round(full.s * 1e6).astype(int))
+    assert set(np.round(win.u * 1e6).astype(int)) <= set(np.round(full.u * 1e6).astype(int))
+    assert win.s.min() >= 5.0 and win.s.max() <= 12.0 and win.u.min() >= -3.0 and win.u.max() <= 4.0
+    assert len(win.s) == 29 and len(win.u) == 71  # 4 profiles/mm over 7 mm, 10 points/mm over 7 mm (both ends)
+    with pytest.raises(ValueError, match="window"):
+        scan_grid(art, st, scanner, full.pose, window=(500.0, 600.0, -3.0, 4.0))
