@@ -4,6 +4,8 @@ keep-current and domain rules."""
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -101,7 +103,9 @@ class Oracle:
                 rand.append(r)
             nom = np.full_like(exp, np.nan)  # the true surface point of each ray (the same rays for every seed)
             nom[ctx.index[ctx.keep]] = ctx.p[ctx.keep]
-            u = 1.96 * np.nanstd(np.stack(rand), axis=0, ddof=1)
+            with warnings.catch_warnings():  # rays returned by fewer than 2 seeds: NaN, dropped below
+                warnings.simplefilter("ignore", RuntimeWarning)
+                u = 1.96 * np.nanstd(np.stack(rand), axis=0, ddof=1)
             ok = np.isfinite(nom).all(axis=1) & np.isfinite(u).all(axis=1)
             _, nn = cKDTree(nom[ok]).query(self.nominal)
             self.cache[st, o] = (exp[ok][nn], u[ok][nn])
@@ -316,3 +320,43 @@ def test_scan_grid_window_keeps_the_full_grids_rays(scanner):
     assert len(win.s) == 29 and len(win.u) == 71  # 4 profiles/mm over 7 mm, 10 points/mm over 7 mm (both ends)
     with pytest.raises(ValueError, match="window"):
         scan_grid(art, st, scanner, full.pose, window=(500.0, 600.0, -3.0, 4.0))
+
+
+def test_batched_uncertainty_fast_path(scanner):
+    """A model set with ``predict_batch_with_uncertainty`` is used in one call per orientation and ranks exactly as
+    the same model seen through ``predict_with_uncertainty`` (one call per settings version)."""
+
+    class PerCloud:
+        feature_names = ("exposure_time", "Inc", "R_y")
+
+        def predict(self, X):
+            X = np.asarray(X, np.float64)
+            return np.stack([1e-3 * X[:, 1], 2e-3 * (1 - X[:, 1]), 1e-5 * X[:, 2]], axis=1)
+
+        def predict_batch(self, Xq):
+            return np.stack([self.predict(x) for x in Xq])
+
+        def predict_with_uncertainty(self, X):
+            X = np.asarray(X, np.float64)
+            return self.predict(X), np.repeat(0.01 / np.sqrt(X[:, :1]) * (2 - X[:, 1:2]), 3, axis=1)
+
+    class Batched(PerCloud):
+        calls = 0
+
+        def predict_batch_with_uncertainty(self, Xq):
+            Batched.calls += 1
+            out = [self.predict_with_uncertainty(x) for x in Xq]
+            return np.stack([a for a, _ in out]), np.stack([b for _, b in out])
+
+    judged = simulate_scan(Sphere(17.5), ScanSettings(10.0, 4.0, 0.5), scanner=scanner, seed=12)
+    ctx = _context(judged, scanner)
+    rows = np.flatnonzero(np.linalg.norm(np.asarray(ctx.points) - [0, 0, 17.5], axis=1) < 4)
+    feats = compute_features(list(PerCloud.feature_names), ctx)
+    kw = dict(max_points=300, tilt_steps=3, turn_steps=3, in_domain=False)
+    a = recommend(PerCloud(), ctx, rows, feats, judged.pose, scanner, judged.settings, **kw)
+    b = recommend(Batched(), ctx, rows, feats, judged.pose, scanner, judged.settings, **kw)
+    assert a.uses_uncertainty and b.uses_uncertainty
+    assert Batched.calls == 1 + b.n_orientations_kept  # before + one per kept orientation
+    assert [(c.settings, c.score_mm, c.predicted_p95_mm) for c in a.ranked] == [
+        (c.settings, c.score_mm, c.predicted_p95_mm) for c in b.ranked]
+    assert a.best.settings == b.best.settings and a.kept_current == b.kept_current

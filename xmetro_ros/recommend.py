@@ -226,7 +226,9 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
         max_seconds: time budget; the search stops (and says so in the note) once it is spent, after at least the
             current orientation (evaluated first).
         uncertainty: ``(model_set, X (M, F)) -> U (M, 3)`` mm, the expanded (95 %) uncertainty per axis of one
-            cloud's predictions; None → the model set's ``predict_with_uncertainty`` if any, else U = 0.
+            cloud's predictions; None → the model set's ``predict_batch_with_uncertainty(Xq (Q, M, F)) -> (d, U)``
+            (both (Q, M, 3), one call for all settings versions) if any, else its ``predict_with_uncertainty``
+            (one call per version), else U = 0.
         in_domain: ``X (M, F) -> (M,) bool``; None → the model set's own measure if any; False → no check.
         max_out_of_domain: candidates with a larger share of covered points outside the domain are discarded.
         keep_current: recommend the current set-up unless the best predicted gain exceeds its uncertainty.
@@ -249,6 +251,9 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
     sub = ctx.subset(rows)
     centroid = np.asarray(sub.points, dtype=np.float64).mean(axis=0)
     unc_fn = uncertainty if uncertainty is not None else _default_uncertainty(model_set)
+    # Fast path: a model set predicting d and U of Q cloud versions in one call (no second pass per settings).
+    batch_du = getattr(model_set, "predict_batch_with_uncertainty", None) if uncertainty is None else None
+    batch_du = batch_du if callable(batch_du) else None
     dom_fn = None if in_domain is False else (in_domain if in_domain is not None else _default_in_domain(model_set))
 
     def predict_unc(X: np.ndarray) -> np.ndarray | None:
@@ -266,10 +271,15 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
 
     cov_before = coverage_mask(sub, grazing_incidence_deg, grazing_view_deg)
     Xb = np.asarray(before_features[rows], dtype=np.float32)[None]
-    pred_before = np.asarray(model_set.predict(Xb[0]), dtype=np.float64)[None]
+    if batch_du is not None:
+        d_b, u_b = batch_du(Xb)
+        pred_before, unc_before = np.asarray(d_b, np.float64), np.asarray(u_b, np.float64)
+    else:
+        pred_before = np.asarray(model_set.predict(Xb[0]), dtype=np.float64)[None]
+        unc_before = predict_unc(Xb)
     # common random numbers for the predicted error distribution: one deterministic draw set for all candidates
     z = np.random.default_rng(0).standard_normal((N_DRAWS, len(rows), 3), dtype=np.float32)
-    mb, pb, tb, ub, u95b, eb = _scores(pred_before, predict_unc(Xb), cov_before, z)
+    mb, pb, tb, ub, u95b, eb = _scores(pred_before, unc_before, cov_before, z)
     before = Candidate(settings, np.eye(3), pose, float(mb[0]), float(pb[0]), float(cov_before.mean()),
                        float(tb[0]), float(ub[0]), float(u95b[0]), float(ood_share(Xb, cov_before)[0]), float(eb[0]))
     need = min(min_coverage, before.coverage) - 1e-12
@@ -304,9 +314,15 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
         cov = cov & ok
         X[:, ~ok] = 0.0
         step = max(1, batch_rows // m)
-        pred = np.concatenate([np.asarray(model_set.predict_batch(X[i:i + step]), dtype=np.float64)
-                               for i in range(0, len(X), step)])
-        means, p95s, tots, uncs, u95s, e95s = _scores(pred, predict_unc(X), cov, z)
+        if batch_du is not None:
+            du = [batch_du(X[i:i + step]) for i in range(0, len(X), step)]
+            pred = np.concatenate([np.asarray(a, np.float64) for a, _ in du])
+            unc = np.concatenate([np.asarray(b, np.float64) for _, b in du])
+        else:
+            pred = np.concatenate([np.asarray(model_set.predict_batch(X[i:i + step]), dtype=np.float64)
+                                   for i in range(0, len(X), step)])
+            unc = predict_unc(X)
+        means, p95s, tots, uncs, u95s, e95s = _scores(pred, unc, cov, z)
         ood = ood_share(X, cov)
         for k, s in enumerate(cands):
             if ood[k] > max_out_of_domain:
@@ -326,7 +342,8 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
                  "orientations")
     if n_region > m:
         note += f" (region of {n_region} points subsampled, evenly spaced)"
-    if unc_fn is None:
+    uses_u = unc_fn is not None or batch_du is not None
+    if not uses_u:
         note += "; ranked by the predicted systematic error only: the model gives no uncertainty, noise is ignored"
     else:
         note += "; ranked by the p95 of |d| + |U| (systematic and random parts)"
@@ -348,5 +365,5 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
                      f"uncertainty {gain_unc * 1e3:.1f} um")
     return Recommendation(best=best, before=before, ranked=ranked, n_points=m, n_region=n_region,
                           n_orientations=len(orients), n_orientations_kept=n_kept, n_settings=len(cands), note=note,
-                          n_orientations_evaluated=n_eval, kept_current=kept, uses_uncertainty=unc_fn is not None,
+                          n_orientations_evaluated=n_eval, kept_current=kept, uses_uncertainty=uses_u,
                           n_out_of_domain=n_ood, top=top)
