@@ -358,7 +358,9 @@ def test_services(rig):
     # the current settings and orientation are among the candidates: the best is at least as good
     assert r.p95_abs_error_after <= r.p95_abs_error_before * (1 + 1e-5)
     scores = [a.score for a in r.alternatives]
-    assert scores == sorted(scores) and scores[0] == pytest.approx(r.p95_abs_error_after)
+    # the best-ranked unless its predicted gain is within its uncertainty (then the current set-up, and it says so)
+    assert scores == sorted(scores)
+    assert scores[0] == pytest.approx(r.p95_abs_error_after) or "keep the current set-up" in r.message
     qn = np.array([r.recommended_orientation.x, r.recommended_orientation.y, r.recommended_orientation.z,
                    r.recommended_orientation.w])
     assert np.linalg.norm(qn) == pytest.approx(1.0)

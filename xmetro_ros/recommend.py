@@ -6,19 +6,37 @@ Search (exhaustive grid, deterministic):
   Z in ``linspace(-max_turn, max_turn, turn_steps)`` (defaults 3 × 3 × 3 = 27 orientations, identity included),
   each applied to the current head pose about the region centroid (``HeadPose.rotated(r, pivot=centroid)``);
 - settings: the candidates given, or the scanner's 27 study configurations.
-For each orientation the geometry-dependent features are recomputed (``FeatureContext.with_pose``), and for each
-settings the settings features (``with_settings``); all candidates of one orientation go into one predict call.
+For each orientation the geometry-dependent features are recomputed once (``FeatureContext.with_pose``) and only the
+settings-dependent columns per settings; all candidates of one orientation go into one batched predict call.
 A point is *covered* when lit and seen at non-grazing angles (acos(N·L) and acos(N·V) under the grazing
 thresholds). Orientations covering less than ``min(min_coverage, current coverage)`` of the region are discarded
-before any prediction. Candidates are ranked by the p95 of the predicted |error| (norm over x, y, z) over their
-covered points, ties by the mean.
+before any prediction.
+
+Ranking by the total predicted error a user will see (systematic and random parts together): per covered point
+``t = |d| + |U|`` where ``d`` (3,) is the predicted systematic error and ``U`` (3,) the predicted expanded (95 %)
+uncertainty per axis, both mm, norms over x, y, z; a candidate's score is the p95 of ``t`` over its covered points
+(ties: the mean of |d|). ``|e| = |d + r| <= |d| + |r|`` and laser triangulation noise lies mostly along one
+direction (the ray), so ``|U|`` bounds ``|r|`` at about 95 % per point: the score is a (slightly conservative)
+prediction of the p95 of the actual |error| in the region. U comes from ``uncertainty(model_set, X) -> (M, 3)``;
+by default from the model set's ``predict_with_uncertainty(X) -> (d, U)`` when it has one; otherwise U = 0, the score
+is the p95 of |d| (the ranking of earlier versions) and the note says the ranking ignores noise.
+
+Keeping the current set-up: the best candidate is recommended only when its predicted gain over the current set-up
+(current settings, current orientation, evaluated like every candidate) exceeds the gain's own uncertainty,
+``gain > sqrt(u_before² + u_best²)``, where ``u`` of a score is the half-width of the distribution-free 95 %
+confidence interval of a p95 estimated from the candidate's covered points (binomial order statistics of the
+per-point ``t``). Otherwise ``best`` is the current set-up and ``kept_current`` is True. This accounts for the finite
+region and the spread of the per-point errors, not for a model bias shared by all points of the region.
+
+Domain: ``in_domain(X) -> (M,) bool`` (default: the model set's ``in_domain`` when it has one, else not
+``out_of_domain``, else no check). A candidate whose share of covered points outside the domain exceeds
+``max_out_of_domain`` is discarded (its predictions are extrapolations); the note says how many were.
 
 A time budget (``max_seconds``) stops the search after the orientation in progress; the current orientation is
 always evaluated first, and the note says when the search was cut short.
 
-Limits (honest): it ranks by the model's *predicted systematic* error only (no random noise, no occlusion by other
-parts of the workpiece, no reachability of the pose); candidates far from the training domain are extrapolations;
-the normals are those of the current scan.
+Limits (honest): no occlusion by other parts of the workpiece, no reachability of the pose; the normals are those
+of the current scan; the keep-current rule does not see a model bias shared by the whole region.
 """
 
 from __future__ import annotations
@@ -48,7 +66,12 @@ __all__ = [
 
 @dataclass
 class Candidate:
-    """One evaluated set-up: settings and head rotation, predicted mean / p95 |error| (mm), coverage, score."""
+    """One evaluated set-up: settings and head rotation, predicted figures over the covered points (mm), coverage.
+
+    ``mean_mm`` / ``p95_mm``: mean and p95 of the predicted *systematic* |d|; ``total_p95_mm``: p95 of |d| + |U|
+    (the ranking score, = ``p95_mm`` when U = 0); ``score_unc_mm``: half-width of the 95 % confidence interval of
+    that p95 (order statistics); ``u_p95_mm``: p95 of |U|; ``out_of_domain``: share of covered points outside the
+    model's domain."""
 
     settings: ScanSettings
     rotation: np.ndarray          # 3x3, in the head frame, relative to the current head pose
@@ -56,6 +79,11 @@ class Candidate:
     mean_mm: float
     p95_mm: float
     coverage: float
+    total_p95_mm: float | None = None
+    score_unc_mm: float = 0.0
+    u_p95_mm: float = 0.0
+    out_of_domain: float = 0.0
+    predicted_p95_mm: float | None = None  # p95 of |d + r|, r ~ N(0, (U / 1.96)²) per axis: vs the actual p95
 
     @property
     def quaternion(self) -> np.ndarray:
@@ -63,7 +91,8 @@ class Candidate:
 
     @property
     def score_mm(self) -> float:
-        return self.p95_mm
+        """The ranking score: predicted p95 of the total |error| (systematic + random), mm."""
+        return self.p95_mm if self.total_p95_mm is None else self.total_p95_mm
 
 
 @dataclass
@@ -96,6 +125,10 @@ class Recommendation:
     n_settings: int
     note: str
     n_orientations_evaluated: int = 0
+    kept_current: bool = False    # True: no candidate's predicted gain exceeds its uncertainty; best = current
+    uses_uncertainty: bool = False  # False: U = 0, the ranking ignores noise
+    n_out_of_domain: int = 0      # candidates discarded as outside the model's domain
+    top: Candidate | None = None  # the best-ranked candidate (= best unless kept_current)
 
 
 def rotation_xyz(rx: float, ry: float, rz: float) -> np.ndarray:
@@ -122,13 +155,81 @@ def coverage_mask(ctx: Any, grazing_incidence_deg: float, grazing_view_deg: floa
     return (cos_i > np.cos(np.radians(grazing_incidence_deg))) & (cos_v > np.cos(np.radians(grazing_view_deg)))
 
 
-def _stats(pred_mm: np.ndarray, covered: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and p95 of the |error| norm over the covered points: pred (..., m, 3) → (...,) each (inf if none)."""
-    e = np.sqrt(np.einsum("...ij,...ij->...i", pred_mm[..., covered, :], pred_mm[..., covered, :]))
-    if e.shape[-1] == 0:
-        inf = np.full(e.shape[:-1], np.inf)
-        return inf, inf
-    return e.mean(axis=-1), np.percentile(e, 95, axis=-1)
+def p95_interval_halfwidth(values: np.ndarray) -> np.ndarray:
+    """Half-width (…,) of the distribution-free 95 % confidence interval of the 95th percentile of ``values``
+    (…, n), from binomial order statistics: ranks n·0.95 ∓ 1.96·sqrt(n·0.95·0.05). inf when n = 0."""
+    n = values.shape[-1]
+    if n == 0:
+        return np.full(values.shape[:-1], np.inf)
+    half = 1.96 * np.sqrt(n * 0.95 * 0.05)
+    lo = int(np.clip(np.floor(n * 0.95 - half) - 1, 0, n - 1))
+    hi = int(np.clip(np.ceil(n * 0.95 + half) - 1, 0, n - 1))
+    v = np.sort(values, axis=-1)
+    return (v[..., hi] - v[..., lo]) / 2.0
+
+
+N_DRAWS = 4  # draws per point of the predicted error distribution (the predicted p95 of the actual error)
+
+
+def _scores(pred: np.ndarray, unc: np.ndarray | None, covered: np.ndarray, z: np.ndarray | None = None
+            ) -> tuple[np.ndarray, ...]:
+    """Per candidate (S,): mean |d|, p95 |d|, p95 (|d| + |U|), its CI half-width, p95 |U|, and the p95 of |d + r|
+    with r ~ N(0, (U / 1.96)²) per axis (``z``: (N_DRAWS, m, 3) standard normal draws, the same for every
+    candidate so that they compare on common random numbers) over covered points."""
+    # a slice, not a copy, when every point is covered (the usual case)
+    sel: slice | np.ndarray = slice(None) if covered.all() else covered
+    pc = pred[..., sel, :]
+    d = np.sqrt(np.einsum("...ij,...ij->...i", pc, pc))
+    empty = np.full(pred.shape[:-2], np.inf)
+    if not d.shape[-1]:
+        return empty, empty, empty, empty, empty, empty
+    mean, p95 = d.mean(axis=-1), np.percentile(d, 95, axis=-1)
+    if unc is None:
+        return mean, p95, p95, p95_interval_halfwidth(d), np.zeros(pred.shape[:-2]), p95
+    uc = unc[..., sel, :]
+    u = np.sqrt(np.einsum("...ij,...ij->...i", uc, uc))
+    t = d + u
+    if z is None:
+        z = np.random.default_rng(0).standard_normal((N_DRAWS, *uc.shape[-2:]), dtype=np.float32)
+    else:
+        z = z[:, sel]
+    # (S, D, m, 3): the predicted error of every point in D draws (float32: a p95 needs no more)
+    e = pc.astype(np.float32)[..., None, :, :] + (uc * (1 / 1.96)).astype(np.float32)[..., None, :, :] * z
+    en = np.sqrt(np.einsum("...ij,...ij->...i", e, e)).reshape(*pred.shape[:-2], -1)
+    return (mean, p95, np.percentile(t, 95, axis=-1), p95_interval_halfwidth(t), np.percentile(u, 95, axis=-1),
+            np.percentile(en, 95, axis=-1))
+
+
+UncertaintyFn = Callable[[Any, np.ndarray], np.ndarray]
+
+
+def _default_uncertainty(model_set: Any) -> UncertaintyFn | None:
+    """U from the model set's ``predict_with_uncertainty(X)`` (an ``inference.UncertainPrediction`` or a (d, U)
+    pair) when it has one and is calibrated, else None (U = 0)."""
+    f = getattr(model_set, "predict_with_uncertainty", None)
+    if not callable(f) or not getattr(model_set, "calibrated", True):
+        return None
+
+    def u(ms: Any, X: np.ndarray) -> np.ndarray:
+        r = ms.predict_with_uncertainty(X)
+        return np.asarray(r.U if hasattr(r, "U") else r[1], dtype=np.float64)
+
+    return u
+
+
+def _default_in_domain(model_set: Any) -> Callable[[np.ndarray], np.ndarray] | None:
+    """The model set's own domain measure: ``in_domain(X)``, else not ``out_of_domain_mv(X)`` (the multivariate
+    domain), else not ``out_of_domain(X)``, else None."""
+    f = getattr(model_set, "in_domain", None)
+    if callable(f):
+        return lambda X: np.asarray(f(X), dtype=bool)
+    mv = getattr(model_set, "out_of_domain_mv", None)
+    if callable(mv):
+        return lambda X: ~np.asarray(mv(X), dtype=bool)
+    g = getattr(model_set, "out_of_domain", None)
+    if callable(g):
+        return lambda X: ~np.asarray(g(X), dtype=bool)
+    return None
 
 
 def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.ndarray, pose: HeadPose,
@@ -136,13 +237,16 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
               max_points: int = 2000, max_tilt: float = 0.2618, tilt_steps: int = 3, max_turn: float = 1.5708,
               turn_steps: int = 3, grazing_incidence_deg: float = 75.0, grazing_view_deg: float = 75.0,
               min_coverage: float = 0.95, batch_rows: int = 400_000,
-              max_seconds: float | None = None,
+              max_seconds: float | None = None, uncertainty: UncertaintyFn | None = None,
+              in_domain: Callable[[np.ndarray], np.ndarray] | bool | None = None, max_out_of_domain: float = 0.05,
+              keep_current: bool = True,
               progress: Callable[[RecommendProgress], None] | None = None,
               cancelled: Callable[[], bool] | None = None) -> Recommendation:
     """Search settings × orientations for the region ``rows`` of a judged scan (see the module docstring).
 
     Args:
-        model_set: inference.ModelSet (feature_names, predict in mm).
+        model_set: inference.ModelSet (feature_names, predict / predict_batch in mm; optionally
+            predict_with_uncertainty, in_domain / out_of_domain).
         ctx: FeatureContext of the judged scan's processed points.
         rows: region rows into ``ctx`` (non-empty).
         before_features: (M, F) the judged features of all rows (the "before" prediction uses them; the region
@@ -152,11 +256,19 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
         candidates: settings to try; None → ``scanner.study_configurations()``.
         max_seconds: time budget; the search stops (and says so in the note) once it is spent, after at least the
             current orientation (evaluated first).
+        uncertainty: ``(model_set, X (M, F)) -> U (M, 3)`` mm, the expanded (95 %) uncertainty per axis of one
+            cloud's predictions; None → the model set's ``predict_batch_with_uncertainty(Xq (Q, M, F)) -> (d, U)``
+            (both (Q, M, 3), one call for all settings versions) if any, else its ``predict_with_uncertainty``
+            (one call per version), else U = 0.
+        in_domain: ``X (M, F) -> (M,) bool``; None → the model set's own measure if any; False → no check.
+        max_out_of_domain: candidates with a larger share of covered points outside the domain are discarded.
+        keep_current: recommend the current set-up unless the best predicted gain exceeds its uncertainty.
         progress: called after each orientation with a :class:`RecommendProgress` (the ROS action's feedback).
         cancelled: polled before each orientation; true → :class:`RecommendCancelled` is raised.
 
     Raises:
-        ValueError: empty region, or no orientation keeps the required coverage.
+        ValueError: empty region, or no orientation keeps the required coverage (or every candidate is outside
+            the model's domain).
         RecommendCancelled: ``cancelled()`` became true.
     """
     from .features import REGISTRY, compute_features
@@ -172,11 +284,38 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
     names = list(model_set.feature_names)
     sub = ctx.subset(rows)
     centroid = np.asarray(sub.points, dtype=np.float64).mean(axis=0)
+    unc_fn = uncertainty if uncertainty is not None else _default_uncertainty(model_set)
+    # Fast path: a model set predicting d and U of Q cloud versions in one call (no second pass per settings).
+    batch_du = getattr(model_set, "predict_batch_with_uncertainty", None) if uncertainty is None else None
+    batch_du = batch_du if callable(batch_du) else None
+    dom_fn = None if in_domain is False else (in_domain if in_domain is not None else _default_in_domain(model_set))
+
+    def predict_unc(X: np.ndarray) -> np.ndarray | None:
+        """(S, m, F) → U (S, m, 3), one cloud per settings version; None without an uncertainty source."""
+        if unc_fn is None:
+            return None
+        return np.stack([np.asarray(unc_fn(model_set, X[k]), dtype=np.float64) for k in range(len(X))])
+
+    def ood_share(X: np.ndarray, cov: np.ndarray) -> np.ndarray:
+        """(S,) share of covered points outside the domain."""
+        if dom_fn is None or not cov.any():
+            return np.zeros(len(X))
+        inside = np.asarray(dom_fn(X[:, cov].reshape(-1, X.shape[-1])), dtype=bool).reshape(len(X), -1)
+        return 1.0 - inside.mean(axis=1)
 
     cov_before = coverage_mask(sub, grazing_incidence_deg, grazing_view_deg)
-    pred_before = np.asarray(model_set.predict(before_features[rows]), dtype=np.float64)
-    mean_b, p95_b = _stats(pred_before, cov_before)
-    before = Candidate(settings, np.eye(3), pose, float(mean_b), float(p95_b), float(cov_before.mean()))
+    Xb = np.asarray(before_features[rows], dtype=np.float32)[None]
+    if batch_du is not None:
+        d_b, u_b = batch_du(Xb)
+        pred_before, unc_before = np.asarray(d_b, np.float64), np.asarray(u_b, np.float64)
+    else:
+        pred_before = np.asarray(model_set.predict(Xb[0]), dtype=np.float64)[None]
+        unc_before = predict_unc(Xb)
+    # common random numbers for the predicted error distribution: one deterministic draw set for all candidates
+    z = np.random.default_rng(0).standard_normal((N_DRAWS, len(rows), 3), dtype=np.float32)
+    mb, pb, tb, ub, u95b, eb = _scores(pred_before, unc_before, cov_before, z)
+    before = Candidate(settings, np.eye(3), pose, float(mb[0]), float(pb[0]), float(cov_before.mean()),
+                       float(tb[0]), float(ub[0]), float(u95b[0]), float(ood_share(Xb, cov_before)[0]), float(eb[0]))
     need = min(min_coverage, before.coverage) - 1e-12
 
     dep = [j for j, n in enumerate(names) if "settings" in tuple(REGISTRY.get(n).inputs)]
@@ -186,7 +325,7 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
     orients.sort(key=lambda r: not np.allclose(r, np.eye(3)))
     t_start = time.monotonic()
     ranked: list[Candidate] = []
-    n_kept = n_eval = 0
+    n_kept = n_eval = n_ood = 0
     m = len(rows)
     best_p95 = math.inf
     for r in orients:
@@ -215,23 +354,59 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
         cov = cov & ok
         X[:, ~ok] = 0.0
         step = max(1, batch_rows // m)
-        pred = np.concatenate([np.asarray(model_set.predict_batch(X[i:i + step]), dtype=np.float64)
-                               for i in range(0, len(X), step)])
-        means, p95s = _stats(pred, cov)
+        if batch_du is not None:
+            du = [batch_du(X[i:i + step]) for i in range(0, len(X), step)]
+            pred = np.concatenate([np.asarray(a, np.float64) for a, _ in du])
+            unc = np.concatenate([np.asarray(b, np.float64) for _, b in du])
+        else:
+            pred = np.concatenate([np.asarray(model_set.predict_batch(X[i:i + step]), dtype=np.float64)
+                                   for i in range(0, len(X), step)])
+            unc = predict_unc(X)
+        means, p95s, tots, uncs, u95s, e95s = _scores(pred, unc, cov, z)
+        ood = ood_share(X, cov)
         for k, s in enumerate(cands):
-            ranked.append(Candidate(s, r, pose_o, float(means[k]), float(p95s[k]), float(cov.mean())))
+            if ood[k] > max_out_of_domain:
+                n_ood += 1
+                continue
+            ranked.append(Candidate(s, r, pose_o, float(means[k]), float(p95s[k]), float(cov.mean()),
+                                    float(tots[k]), float(uncs[k]), float(u95s[k]), float(ood[k]), float(e95s[k])))
         best_p95 = min(best_p95, float(np.min(p95s)))
     if progress is not None:
         progress(RecommendProgress(n_eval, len(orients), n_kept, len(cands), time.monotonic() - t_start, best_p95))
     if not ranked:
+        if n_ood:
+            raise ValueError(f"all {n_ood} candidates keeping the coverage lie outside the model's domain "
+                             f"(> {max_out_of_domain:.0%} of their points)")
         raise ValueError(f"no orientation keeps the coverage >= {need:.3f} of the region")
-    ranked.sort(key=lambda c: (c.p95_mm, c.mean_mm))
+    ranked.sort(key=lambda c: (c.score_mm, c.mean_mm))
     note = f"{len(orients)} orientations ({n_kept} kept) x {len(cands)} settings on {m} points"
     if n_eval < len(orients):
         note += (f"; time budget of {max_seconds:g} s spent: search stopped after {n_eval} of {len(orients)} "
                  "orientations")
     if n_region > m:
         note += f" (region of {n_region} points subsampled, evenly spaced)"
-    return Recommendation(best=ranked[0], before=before, ranked=ranked, n_points=m, n_region=n_region,
+    uses_u = unc_fn is not None or batch_du is not None
+    if not uses_u:
+        note += "; ranked by the predicted systematic error only: the model gives no uncertainty, noise is ignored"
+    else:
+        note += "; ranked by the p95 of |d| + |U| (systematic and random parts)"
+    if dom_fn is None:
+        note += "; no domain check"
+    elif n_ood:
+        note += (f"; {n_ood} candidates discarded: more than {max_out_of_domain:.0%} of their points outside the "
+                 "model's domain")
+    top = ranked[0]
+    best, kept = top, False
+    if keep_current:
+        gain = before.score_mm - top.score_mm
+        gain_unc = float(np.hypot(before.score_unc_mm, top.score_unc_mm))
+        if not gain > gain_unc:
+            # The current set-up, evaluated like the candidates when it is one of them (same cloud prediction).
+            cur = [c for c in ranked if c.settings == settings and np.allclose(c.rotation, np.eye(3))]
+            best, kept = (cur[0] if cur else before), True
+            note += (f"; keep the current set-up: predicted gain {gain * 1e3:.1f} um does not exceed its "
+                     f"uncertainty {gain_unc * 1e3:.1f} um")
+    return Recommendation(best=best, before=before, ranked=ranked, n_points=m, n_region=n_region,
                           n_orientations=len(orients), n_orientations_kept=n_kept, n_settings=len(cands), note=note,
-                          n_orientations_evaluated=n_eval)
+                          n_orientations_evaluated=n_eval, kept_current=kept, uses_uncertainty=uses_u,
+                          n_out_of_domain=n_ood, top=top)

@@ -82,9 +82,12 @@ def scan_grid(
     scanner: ScannerModel,
     pose: HeadPose | None = None,
     extent_mm: float = DEFAULT_EXTENT_MM,
+    window: tuple[float, float, float, float] | None = None,
 ) -> ScanGrid:
     """Rows and columns that cover the artifact. ``pose`` None → looking down from ``scanner.standoff_mm`` above
-    the origin, starting ``MARGIN_MM`` before the artifact; given → the scan starts at ``pose``."""
+    the origin, starting ``MARGIN_MM`` before the artifact; given → the scan starts at ``pose``. ``window``
+    (s_lo, s_hi, u_lo, u_hi), mm in the head frame of ``pose`` (s: travel along head +Y, u: line position at the
+    reference stand-off) keeps only the rows and columns inside it (the same rays as the full scan, fewer of them)."""
     corners = _bounds_corners(artifact, extent_mm)
     if pose is None:
         h0 = HeadPose.looking_down(scanner.standoff_mm)
@@ -95,7 +98,13 @@ def scan_grid(
     if s_max <= 0:
         raise ValueError("the artifact lies behind the scan start: nothing to scan from this pose")
     h = int(np.floor(s_max * settings.direction_density)) + 1
-    s = np.arange(h) / settings.direction_density
+    i0 = 0
+    if window is not None:  # same row positions as the full scan, restricted to the window
+        i0 = max(0, int(np.ceil(window[0] * settings.direction_density)))
+        h = min(h, int(np.floor(window[1] * settings.direction_density)) + 1)
+        if h <= i0:
+            raise ValueError("the scan window holds no profile")
+    s = np.arange(i0, h) / settings.direction_density
     # Column range: corners projected along the rays onto the reference plane, limited by the fan.
     r_ref = scanner.standoff_mm
     u_fan = r_ref * np.tan(np.radians(scanner.fan_angle_deg / 2))
@@ -107,6 +116,8 @@ def scan_grid(
         lo, hi = max(u_c.min() - MARGIN_MM, -u_fan), min(u_c.max() + MARGIN_MM, u_fan)
     else:
         lo, hi = -u_fan, u_fan
+    if window is not None:
+        lo, hi = max(lo, window[2]), min(hi, window[3])
     if lo >= hi:
         raise ValueError("the artifact is outside the laser fan")
     lat = settings.lateral_density
@@ -157,6 +168,7 @@ def simulate_scan(
     stamp_ns: int = 0,
     extent_mm: float = DEFAULT_EXTENT_MM,
     keep_context: bool = False,
+    window: tuple[float, float, float, float] | None = None,
 ) -> Scan:
     """Simulate one organized scan of ``artifact``.
 
@@ -171,6 +183,8 @@ def simulate_scan(
         extent_mm: scanned length of a cylinder along its axis / side of a plane patch, mm (> 0).
         keep_context: put the SimContext (per-effect contributions) in ``scan.meta["_context"]`` (not JSON-safe;
             for figures and tests).
+        window: (s_lo, s_hi, u_lo, u_hi) mm in the head frame of the start pose: simulate only those rows and
+            columns of the grid (see ``scan_grid``; a region's re-simulation, xmetro_ros.resim). None → all.
 
     Returns:
         Scan with points (H, W, 3) mm (NaN = no return), fields intensity, line, t (s), u (mm) as float32,
@@ -189,7 +203,7 @@ def simulate_scan(
     if not (np.isfinite(extent_mm) and extent_mm > 0):
         raise ValueError(f"extent_mm must be a positive number, got {extent_mm!r}")
     fx = resolve_effects(scanner.effects, effects)
-    grid = scan_grid(artifact, settings, scanner, pose, extent_mm)
+    grid = scan_grid(artifact, settings, scanner, pose, extent_mm, window)
     pose = grid.pose
     h, w = grid.shape
     origins, dirs = grid.rays()

@@ -1,0 +1,127 @@
+"""``xmetro verify-recommend``: follow the rescan recommendation in the virtual scanner and report what it gives.
+
+For each region (nine by default: 3 on the 35 mm sphere... see ``REGIONS``; seeds 7000 + i, never used by the
+campaign's training items, whose seeds derive from the campaign seed by ``SeedSequence``), the artifact is scanned
+at the judged settings, judged by the model set, the recommendation asked for the region (``recommend`` with its
+defaults), then the current set-up, the recommended one and every candidate are re-simulated
+(``xmetro_ros.resim.verify``). Writes one JSON object: per region the predicted and actual p95 before / after, the
+actual best candidate, the ratio after / best, the recommendation's percentile in the actual ranking, the rank
+correlation of predicted and actual p95 over the candidates; medians over the regions.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..artifacts import Artifact, Cylinder, Sphere
+from ..scanner import ScanSettings
+
+# (artifact, judged settings, direction of the region centre from the artifact's centre / axis)
+REGIONS: list[tuple[Artifact, tuple[float, float, float], tuple[float, float, float]]] = [
+    (Sphere(17.5), (6.0, 3.0, 0.5), (0.0, 0.0, 1.0)),
+    (Sphere(17.5), (10.0, 4.0, 0.1), (0.5, 0.3, 0.81)),
+    (Sphere(22.5), (15.0, 5.0, 0.1), (-0.45, 0.0, 0.89)),
+    (Sphere(22.5), (6.0, 5.0, 2.0), (0.0, -0.5, 0.87)),
+    (Sphere(27.5), (10.0, 3.0, 0.1), (0.6, 0.0, 0.8)),
+    (Sphere(27.5), (15.0, 4.0, 2.0), (0.0, 0.0, 1.0)),
+    (Cylinder(20.0), (6.0, 3.0, 0.5), (0.0, 0.0, 1.0)),
+    (Cylinder(20.0), (10.0, 5.0, 0.1), (0.55, 0.0, 0.83)),
+    (Cylinder(20.0), (15.0, 3.0, 2.0), (-0.6, 0.0, 0.8)),
+]
+
+
+def region_centre(art: Artifact, direction: tuple[float, float, float]) -> np.ndarray:
+    """The surface point in ``direction`` from a sphere's centre, or from the cylinder's axis (along Y) at y = 4."""
+    d = np.asarray(direction, float) / np.linalg.norm(direction)
+    if isinstance(art, Sphere):
+        return np.asarray(art.c, float) + art.radius * d
+    assert isinstance(art, Cylinder)
+    return np.array([art.radius * d[0], 4.0, art.radius * d[2]])
+
+
+def verify_regions(model_dir: Path | None = None, radius_mm: float = 4.0, n_regions: int = len(REGIONS),
+                   candidate_seeds: int = 1, **recommend_kw: Any) -> dict[str, Any]:
+    """Run the check over the first ``n_regions`` regions; returns the JSON-serialisable report."""
+    from ..inference import ModelSet
+    from ..recommend import recommend
+    from ..resim import GroundTruth, Region, verify
+    from ..scan_handler import HandlerParams, ScanHandler
+    from ..scanner import ScannerModel
+    from ..sim import simulate_scan
+
+    scanner = ScannerModel.load()
+    model = ModelSet.load(str(model_dir) if model_dir else None)
+    out: list[dict[str, Any]] = []
+    um = 1e3
+    for i, (art, st, direction) in enumerate(REGIONS[:n_regions]):
+        t0 = time.monotonic()
+        scan = simulate_scan(art, ScanSettings(*st), scanner=scanner, seed=7000 + i)
+        res = ScanHandler(model, scanner, HandlerParams()).process(scan)
+        c = region_centre(art, direction)
+        pts = np.asarray(res.prepared.points, dtype=np.float64)
+        rows = np.flatnonzero(np.linalg.norm(art.project(pts) - c, axis=1) <= radius_mm)
+        rec = recommend(model, res.context, rows, res.features, scan.pose, scanner, scan.settings, **recommend_kw)
+        ver = verify(GroundTruth.from_scan(scan, scanner), Region(centre=c, radius_mm=radius_mm), rec, n_seeds=2,
+                     all_candidates=True, candidate_seeds=candidate_seeds)
+        assert ver.best is not None
+
+        def s(x: ScanSettings) -> list[float]:
+            return [x.lateral_density, x.direction_density, x.exposure_ms]
+
+        out.append({
+            "artifact": art.to_dict(), "judged_settings": list(st), "centre_mm": c.round(3).tolist(),
+            "radius_mm": radius_mm, "seed": 7000 + i, "note": rec.note, "kept_current": rec.kept_current,
+            "recommended_settings": s(rec.best.settings),
+            "recommended_quaternion_xyzw": rec.best.quaternion.round(6).tolist(),
+            "predicted_p95_um": {"before": ver.before.predicted_p95_mm * um, "after": ver.after.predicted_p95_mm * um},
+            "actual_p95_um": {"before": ver.before.p95_mm * um, "after": ver.after.p95_mm * um,
+                              "best": ver.best.p95_mm * um, "after_spread": ver.after.p95_spread_mm * um},
+            "actual_after_parts_um": {"systematic_p95": ver.after.sys_p95_mm * um,
+                                      "random_p95": ver.after.rand_p95_mm * um},
+            "best_settings": s(ver.best.settings),
+            "after_over_best": ver.after_over_best, "after_percentile": ver.after_percentile,
+            "rank_correlation": ver.rank_correlation(), "n_candidates": len(ver.candidates),
+            "coverage_after": ver.after.coverage, "seconds": round(time.monotonic() - t0, 1),
+        })
+        print(f"region {i}: actual p95 {out[-1]['actual_p95_um']['before']:.1f} -> "
+              f"{out[-1]['actual_p95_um']['after']:.1f} um (best {out[-1]['actual_p95_um']['best']:.1f}), predicted "
+              f"{out[-1]['predicted_p95_um']['before']:.1f} -> {out[-1]['predicted_p95_um']['after']:.1f} um",
+              file=sys.stderr, flush=True)
+
+    def med(k: str) -> float:
+        return float(np.median([r[k] for r in out]))
+
+    return {"model": model.id, "regions": out,
+            "median": {"after_over_best": med("after_over_best"), "after_percentile": med("after_percentile"),
+                       "rank_correlation": med("rank_correlation")}}
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("verify-recommend", help="follow the recommendation in the virtual scanner: predicted "
+                              "vs re-simulated actual error over 9 regions", description=__doc__,
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", type=Path, default=None, help="JSON file to write (default: stdout)")
+    p.add_argument("--model", type=Path, default=None, help="model set directory (default: the installed default)")
+    p.add_argument("--radius", type=float, default=4.0, help="region radius, mm")
+    p.add_argument("--regions", type=int, default=len(REGIONS), help="use the first N regions")
+    p.add_argument("--quick", action="store_true", help="3 x 3 tilts only, no turns (a quick check)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    kw: dict[str, Any] = {"turn_steps": 1} if args.quick else {}
+    rep = verify_regions(args.model, args.radius, max(1, min(args.regions, len(REGIONS))), **kw)
+    text = json.dumps(rep, indent=2)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text)
+    else:
+        print(text)
+    return 0
