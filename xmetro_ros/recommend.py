@@ -288,7 +288,11 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
     # Fast path: a model set predicting d and U of Q cloud versions in one call (no second pass per settings).
     batch_du = getattr(model_set, "predict_batch_with_uncertainty", None) if uncertainty is None else None
     batch_du = batch_du if callable(batch_du) else None
-    dom_fn = None if in_domain is False else (in_domain if in_domain is not None else _default_in_domain(model_set))
+    dom_fn: Callable[[np.ndarray], np.ndarray] | None
+    if in_domain is False or in_domain is True:
+        dom_fn = None if in_domain is False else _default_in_domain(model_set)
+    else:
+        dom_fn = in_domain if in_domain is not None else _default_in_domain(model_set)
 
     def predict_unc(X: np.ndarray) -> np.ndarray | None:
         """(S, m, F) → U (S, m, 3), one cloud per settings version; None without an uncertainty source."""
@@ -310,7 +314,7 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
         pred_before, unc_before = np.asarray(d_b, np.float64), np.asarray(u_b, np.float64)
     else:
         pred_before = np.asarray(model_set.predict(Xb[0]), dtype=np.float64)[None]
-        unc_before = predict_unc(Xb)
+        unc_before = predict_unc(Xb)  # type: ignore[assignment]
     # common random numbers for the predicted error distribution: one deterministic draw set for all candidates
     z = np.random.default_rng(0).standard_normal((N_DRAWS, len(rows), 3), dtype=np.float32)
     mb, pb, tb, ub, u95b, eb = _scores(pred_before, unc_before, cov_before, z)

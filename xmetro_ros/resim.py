@@ -94,7 +94,7 @@ class Region:
 
     def box(self) -> np.ndarray:
         """(8, 3) corners of an axis-aligned box holding the region, with a margin (scan frame, mm)."""
-        if self._tree is not None:
+        if self._tree is not None and self.points is not None:
             lo, hi = self.points.min(axis=0) - self.tol_mm, self.points.max(axis=0) + self.tol_mm
         else:
             lo, hi = self.centre - self.radius_mm, self.centre + self.radius_mm

@@ -85,7 +85,8 @@ def export_pointnet(module: Any, n_features: int) -> onnx.ModelProto:
     dummy = torch.zeros(2, 8, n_features)
     # With the spread head a second output ``log_sigma`` (B, n, A), log of σ in mm; ``y`` stays the first output.
     outs = ["y", "log_sigma"] if getattr(module, "head_sigma", None) is not None else ["y"]
-    torch.onnx.export(module, (dummy,), buf, input_names=["X"], output_names=outs, opset_version=17,
+    # torch.onnx.export writes to a file-like object too (its stub names paths only)
+    torch.onnx.export(module, (dummy,), buf, input_names=["X"], output_names=outs, opset_version=17,  # type: ignore[arg-type]
                       dynamic_axes={"X": {0: "sets", 1: "points"}, **{o: {0: "sets", 1: "points"} for o in outs}},
                       dynamo=False)
     model = onnx.load_from_string(buf.getvalue())

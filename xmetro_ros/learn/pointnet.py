@@ -68,7 +68,7 @@ class PointNetReg(nn.Module):
         self.head_local = nn.Linear(block1[-1], head[0])
         self.head_global = nn.Linear(block2[-1], head[0], bias=False)
         self.head = _mlp([head[0], *head[1:], n_out], final_relu=False)
-        self.head_sigma = _mlp([head[0], *head[1:], n_out], final_relu=False) if sigma_head else None
+        self.head_sigma: nn.Module | None = _mlp([head[0], *head[1:], n_out], final_relu=False) if sigma_head else None
         self.register_buffer("x_mean", torch.zeros(n_features))
         self.register_buffer("x_std", torch.ones(n_features))
         self.register_buffer("y_scale", torch.ones(n_out))

@@ -65,7 +65,7 @@ def predict_clouds(ms: ModelSet, X: np.ndarray, cloud_id: np.ndarray, with_u: bo
     order). Returns errors, sigma (and U, out_of_domain, domain_distance with ``with_u``), rows aligned with X."""
     X = np.asarray(X, np.float32)
     cid = np.asarray(cloud_id)
-    out = {"errors": np.full((len(X), 3), np.nan), "sigma": np.full((len(X), 3), np.nan)}
+    out: dict[str, np.ndarray] = {"errors": np.full((len(X), 3), np.nan), "sigma": np.full((len(X), 3), np.nan)}
     if with_u:
         out.update(U=np.full((len(X), 3), np.nan), out_of_domain=np.zeros(len(X), bool),
                    domain_distance=np.full(len(X), np.nan))

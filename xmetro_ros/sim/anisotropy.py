@@ -38,10 +38,10 @@ class Anisotropy(Effect):
         return np.einsum("ij,ij->i", ctx.n, ctx.lateral_dir())
 
     def tilt_bias(self, sin_gamma: np.ndarray) -> np.ndarray:
-        return self.params["tilt_mm"] * sin_gamma
+        return self.p("tilt_mm") * sin_gamma
 
     def apply(self, ctx: SimContext, rng: np.random.Generator) -> None:
-        p = self.params
+        p = self.values()
         lat = ctx.lateral_dir()
         sys = self.tilt_bias(self.sin_gamma(ctx)) + p["distortion_mm"] * (ctx.u_ref / p["u_norm_mm"]) ** 3
         ctx.add_sys(self.name, sys[:, None] * lat)

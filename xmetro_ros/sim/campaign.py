@@ -153,9 +153,10 @@ def study_campaign(
         scanner.validate_settings(c)
     if pose_mode not in ("cycle", "all"):
         raise ValueError(f"pose_mode must be 'cycle' or 'all', got {pose_mode!r}")
-    items = []
+    items: list[CampaignItem] = []
     for ai, a in enumerate(artifacts):
-        starts = [None] if poses is None else [campaign_pose(a, r, scanner) for r in poses]
+        starts: list[HeadPose | None] = [None] if poses is None else [campaign_pose(a, r, scanner) for r in poses]
+        plan: list[tuple[int | None, int]]
         if poses is None:
             plan = [(None, ci) for ci in range(len(configs))]
         elif pose_mode == "cycle":

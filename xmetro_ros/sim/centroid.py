@@ -28,11 +28,11 @@ class CentroidBias(Effect):
 
     def tan_beta(self, ctx: SimContext) -> np.ndarray:
         ny = ctx.n @ ctx.head_y
-        return ny / np.maximum(ctx.cos_inc, self.params["min_cos"])
+        return ny / np.maximum(ctx.cos_inc, self.p("min_cos"))
 
     def bias(self, tan_beta: np.ndarray) -> np.ndarray:
-        m = self.params["max_mm"]
-        return np.clip(self.params["coefficient_mm"] * tan_beta, -m, m)
+        m = self.p("max_mm")
+        return np.clip(self.p("coefficient_mm") * tan_beta, -m, m)
 
     def apply(self, ctx: SimContext, rng: np.random.Generator) -> None:
         ctx.add_sys(self.name, ctx.along_ray(self.bias(self.tan_beta(ctx))))

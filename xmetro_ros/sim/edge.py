@@ -24,7 +24,7 @@ class EdgeEffect(Effect):
     positive = ("width_deg",)
 
     def magnitude_mm(self, inc_deg: np.ndarray) -> np.ndarray:
-        return self.params["max_mm"] * np.exp(-(90.0 - inc_deg) / self.params["width_deg"])
+        return self.p("max_mm") * np.exp(-(90.0 - inc_deg) / self.p("width_deg"))
 
     def apply(self, ctx: SimContext, rng: np.random.Generator) -> None:
         inc = np.degrees(np.arccos(ctx.cos_inc))

@@ -35,6 +35,18 @@ class EffectConfigError(ValueError):
     """An effect parameter that is unknown, not a finite number, or out of its allowed range."""
 
 
+_UNSET = np.empty(0)
+
+
+def _unset() -> np.ndarray:
+    """Default of the per-point arrays of :class:`SimContext` that ``__post_init__`` fills."""
+    return _UNSET
+
+
+def _is_unset(a: np.ndarray | None) -> bool:
+    return a is None or a is _UNSET
+
+
 @dataclass
 class SimContext:
     """Noise-free geometry of the M points that returned light, plus the accumulators the effects write to.
@@ -58,26 +70,27 @@ class SimContext:
     u_ref: np.ndarray  # (M,) ray position along the line at the reference stand-off (head X), mm
     speed_mm_s: float  # head speed
     blur_mm: float  # head travel during one exposure
-    keep: np.ndarray = field(default=None)  # (M,) bool: False = no return
-    sys: np.ndarray = field(default=None)  # (M, 3) systematic displacement
-    rand: np.ndarray = field(default=None)  # (M, 3) random displacement
-    snr_gain: np.ndarray = field(default=None)  # (M,) multiplies the signal (exposure)
-    noise_gain: np.ndarray = field(default=None)  # (M,) multiplies SNR-limited random noise
-    intensity: np.ndarray = field(default=None)  # (M,) 0..1
+    keep: np.ndarray = field(default_factory=_unset)  # (M,) bool: False = no return
+    sys: np.ndarray = field(default_factory=_unset)  # (M, 3) systematic displacement
+    rand: np.ndarray = field(default_factory=_unset)  # (M, 3) random displacement
+    snr_gain: np.ndarray = field(default_factory=_unset)  # (M,) multiplies the signal (exposure)
+    noise_gain: np.ndarray = field(default_factory=_unset)  # (M,) multiplies SNR-limited random noise
+    intensity: np.ndarray = field(default_factory=_unset)  # (M,) 0..1
     contributions: dict[str, np.ndarray] = field(default_factory=dict)  # name → (M, 3) systematic part
     noise_contributions: dict[str, np.ndarray] = field(default_factory=dict)  # name → (M, 3) random part
-    rand_cov: np.ndarray = field(default=None)  # (M, 3, 3) covariance of the Gaussian random displacement, mm²
+    # (M, 3, 3) covariance of the Gaussian random displacement, mm²
+    rand_cov: np.ndarray = field(default_factory=_unset)
     stats: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         m = len(self.index)
-        self.keep = np.ones(m, bool) if self.keep is None else self.keep
-        self.sys = np.zeros((m, 3)) if self.sys is None else self.sys
-        self.rand = np.zeros((m, 3)) if self.rand is None else self.rand
-        self.rand_cov = np.zeros((m, 3, 3)) if self.rand_cov is None else self.rand_cov
-        self.snr_gain = np.ones(m) if self.snr_gain is None else self.snr_gain
-        self.noise_gain = np.ones(m) if self.noise_gain is None else self.noise_gain
-        if self.intensity is None:
+        self.keep = np.ones(m, bool) if _is_unset(self.keep) else self.keep
+        self.sys = np.zeros((m, 3)) if _is_unset(self.sys) else self.sys
+        self.rand = np.zeros((m, 3)) if _is_unset(self.rand) else self.rand
+        self.rand_cov = np.zeros((m, 3, 3)) if _is_unset(self.rand_cov) else self.rand_cov
+        self.snr_gain = np.ones(m) if _is_unset(self.snr_gain) else self.snr_gain
+        self.noise_gain = np.ones(m) if _is_unset(self.noise_gain) else self.noise_gain
+        if _is_unset(self.intensity):
             self.intensity = np.clip(self.cos_inc, 0.0, 1.0)
 
     @property
@@ -170,6 +183,18 @@ class Effect:
             merged[k] = float(v) if v is not None else None
         self.params: dict[str, float | None] = merged
         self.check()
+
+    def p(self, name: str) -> float:
+        """Parameter ``name`` as a number (EffectConfigError when it is unset: only parameters whose default is
+        None may be, and the effect resolves those from the scanner model itself)."""
+        v = self.params[name]
+        if v is None:
+            raise EffectConfigError(f"effect {self.name!r}: parameter {name} is unset")
+        return v
+
+    def values(self) -> dict[str, float]:
+        """The parameters that are set, as numbers (unset ones, resolved from the scanner model, left out)."""
+        return {k: v for k, v in self.params.items() if v is not None}
 
     def check(self) -> None:
         """Extra cross-parameter checks (raise EffectConfigError)."""

@@ -35,10 +35,10 @@ class Exposure(Effect):
     nonnegative = ("snr_exponent", "short_noise_exponent", "saturation_bias_mm", "saturation_widening")
 
     def amplitude(self, cos_inc: np.ndarray, exposure_ms: float) -> np.ndarray:
-        return cos_inc * exposure_ms / self.params["reference_ms"]
+        return cos_inc * exposure_ms / self.p("reference_ms")
 
     def apply(self, ctx: SimContext, rng: np.random.Generator) -> None:
-        p = self.params
+        p = self.values()
         ratio = ctx.settings.exposure_ms / p["reference_ms"]
         ctx.snr_gain *= ratio ** p["snr_exponent"]
         if ratio < 1.0:

@@ -31,12 +31,12 @@ class Incidence(Effect):
     nonnegative = ("exponent", "view_exponent", "min_signal")
 
     def sigma(self, cos_inc: np.ndarray, cos_view: np.ndarray | float = 1.0, gain: np.ndarray | float = 1.0):
-        p = self.params
+        p = self.values()
         return p["sigma_mm"] * gain * cos_inc ** (-p["exponent"]) * np.asarray(cos_view) ** (-p["view_exponent"])
 
     def apply(self, ctx: SimContext, rng: np.random.Generator) -> None:
         ci = ctx.cos_inc
-        weak = ci * ctx.snr_gain < self.params["min_signal"]
+        weak = ci * ctx.snr_gain < self.p("min_signal")
         ctx.keep &= ~weak
         ctx.stats["dropped_weak_signal"] = int(weak.sum())
         sig = self.sigma(ci, ctx.cos_view, ctx.noise_gain)

@@ -28,9 +28,9 @@ class MotionBlur(Effect):
         b = ctx.blur_mm
         ey = ctx.head_y
         # The profile is stamped latency_fraction * b too late: the point lands behind (-Y) where it was lit.
-        shift = -self.params["latency_fraction"] * b
+        shift = -self.p("latency_fraction") * b
         ctx.add_sys(self.name, np.broadcast_to(shift * ey, (ctx.m, 3)).copy())
-        k = max(int(self.params["substeps"]), 1)
+        k = max(int(self.p("substeps")), 1)
         if b <= 0 or k == 1 or ctx.m == 0:
             return
         offsets = (np.arange(k) + 0.5) / k * b - b / 2
@@ -39,5 +39,5 @@ class MotionBlur(Effect):
         frac = hit.mean(axis=0)
         mean = np.nanmean(np.where(hit, depths, np.nan), axis=0) if hit.any() else ctx.depth
         mean = np.where(frac > 0, mean, ctx.depth)
-        ctx.keep &= frac >= self.params["min_fraction"]
+        ctx.keep &= frac >= self.p("min_fraction")
         ctx.add_sys(self.name, ctx.along_ray(mean - ctx.depth))

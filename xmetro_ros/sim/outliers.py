@@ -25,13 +25,13 @@ class Outliers(Effect):
     positive = ("max_mm",)
 
     def check(self) -> None:
-        if self.params["fraction"] > 1:
+        if self.p("fraction") > 1:
             raise EffectConfigError(f"effect {self.name!r}: fraction must be <= 1")
-        if self.params["min_mm"] > self.params["max_mm"]:
+        if self.p("min_mm") > self.p("max_mm"):
             raise EffectConfigError(f"effect {self.name!r}: min_mm must be <= max_mm")
 
     def apply(self, ctx: SimContext, rng: np.random.Generator) -> None:
-        p = self.params
+        p = self.values()
         prob = np.clip(p["fraction"] * (1.0 + p["grazing_boost"] * (1.0 - ctx.cos_inc)), 0.0, 1.0)
         hit = rng.random(ctx.m) < prob
         mag = rng.uniform(p["min_mm"], p["max_mm"], ctx.m) * rng.choice([-1.0, 1.0], ctx.m)

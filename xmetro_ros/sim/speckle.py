@@ -62,9 +62,9 @@ class Speckle(Effect):
 
     def apply(self, ctx: SimContext, rng: np.random.Generator) -> None:
         s = ctx.settings
-        sigma_px = (self.params["corr_s_mm"] * s.direction_density, self.params["corr_u_mm"] * s.lateral_density)
+        sigma_px = (self.p("corr_s_mm") * s.direction_density, self.p("corr_u_mm") * s.lateral_density)
         field = correlated_field(ctx.grid_shape, sigma_px, rng).reshape(-1)[ctx.index]
-        sigma = self.params["sigma_mm"] / np.sqrt(1.0 + ctx.blur_mm / self.params["averaging_mm"])
+        sigma = self.p("sigma_mm") / np.sqrt(1.0 + ctx.blur_mm / self.p("averaging_mm"))
         ctx.add_rand(self.name, ctx.along_ray(sigma * field))
         # The correlation leaves each point's marginal law N(0, sigma²) except where the grid is shorter than the
         # kernel (wrap-around): the exact field std covers that.

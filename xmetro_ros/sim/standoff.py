@@ -29,9 +29,9 @@ class Standoff(Effect):
         return (ctx.standoff - ctx.scanner.standoff_mm) / (0.5 * (far - near))
 
     def bias(self, zeta: np.ndarray) -> np.ndarray:
-        return self.params["linear_mm"] * zeta + self.params["quadratic_mm"] * zeta**2
+        return self.p("linear_mm") * zeta + self.p("quadratic_mm") * zeta**2
 
     def apply(self, ctx: SimContext, rng: np.random.Generator) -> None:
         z = self.zeta(ctx)
         ctx.add_sys(self.name, ctx.along_ray(self.bias(z)))
-        ctx.noise_gain *= 1.0 + self.params["defocus_noise"] * z**2
+        ctx.noise_gain *= 1.0 + self.p("defocus_noise") * z**2
