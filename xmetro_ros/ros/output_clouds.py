@@ -1,8 +1,10 @@
 """The node's two output clouds, built byte by byte into buffers the messages adopt (no extra copies).
 
 - ``~/deviations``: one record per (kept) input point, x, y, z as received and the predicted error dx, dy, dz,
-  dnorm (float32, metres), flags (uint16), via :func:`xmetro_ros.ros.cloud.create_cloud_from_arrays`;
-- ``~/corrected``: the input cloud (same fields, byte order and point layout) with x, y, z + predicted error.
+  dnorm, its expanded uncertainty (95 %) ux, uy, uz (float32, metres), flags (uint16), via
+  :func:`xmetro_ros.ros.cloud.create_cloud_from_arrays`;
+- ``~/corrected``: the input cloud (same fields, byte order and point layout) with x, y, z + predicted error; the
+  residual uncertainty of each corrected coordinate is U (ux, uy, uz of ``~/deviations``).
 
 Frames: the input cloud's (``header.frame_id``); lengths in metres as on every topic.
 """
@@ -23,15 +25,19 @@ __all__ = ["corrected_cloud", "deviations_cloud"]
 
 
 def deviations_cloud(header: Any, points_m: np.ndarray, dev_mm: np.ndarray, flags: np.ndarray, height: int,
-                     width: int) -> PointCloud2:
+                     width: int, unc_mm: np.ndarray | None = None) -> PointCloud2:
     """``~/deviations``: ``points_m`` (N, 3) float32 metres as received, ``dev_mm`` (N, 3) predicted error in mm
-    (NaN where none), ``flags`` (N,) uint16; ``height × width = N``."""
+    (NaN where none), ``unc_mm`` (N, 3) its expanded uncertainty U (95 %) in mm (NaN where none; None: all NaN),
+    ``flags`` (N,) uint16; ``height × width = N``. Point: x, y, z, dx, dy, dz, dnorm, ux, uy, uz float32, flags
+    uint16, padded to 44 bytes (every float 4-byte aligned)."""
     dev_m = mm_to_m(dev_mm).astype(np.float32)
     dnorm = np.sqrt(np.einsum("ij,ij->i", dev_m, dev_m))
+    u_m = (np.full(dev_m.shape, np.nan, np.float32) if unc_mm is None else mm_to_m(unc_mm).astype(np.float32))
     return create_cloud_from_arrays(header, {
         "x": points_m[:, 0], "y": points_m[:, 1], "z": points_m[:, 2],
-        "dx": dev_m[:, 0], "dy": dev_m[:, 1], "dz": dev_m[:, 2], "dnorm": dnorm, "flags": flags,
-    }, height=height, width=width, is_dense=False)
+        "dx": dev_m[:, 0], "dy": dev_m[:, 1], "dz": dev_m[:, 2], "dnorm": dnorm,
+        "ux": u_m[:, 0], "uy": u_m[:, 1], "uz": u_m[:, 2], "flags": flags,
+    }, height=height, width=width, is_dense=False, point_step=44)
 
 
 def corrected_cloud(msg: PointCloud2, dev_mm: np.ndarray, keep: np.ndarray | None, height: int,
