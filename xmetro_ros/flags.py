@@ -10,7 +10,9 @@ bit   name                   set when
 4     grazing_view           view angle acos(N·V) > ``grazing_view_deg`` (N·V <= 0: not seen at all)
 8     over_tolerance         predicted |error| (norm over x, y, z) > ``tolerance``
 16    out_of_domain          a model feature lies outside the model's training range widened by
-                             ``domain_margin`` × the range width on each side (ModelSet.domain)
+                             ``domain_margin`` × the range width on each side (ModelSet.domain), or (set by
+                             ScanHandler with a card ``domain_mv``) the multivariate domain distance exceeds
+                             1 + ``domain_margin`` (in units of its threshold)
 32    unreliable_normal      normal quality < ``normal_quality_min`` (quality from the normal estimation, 0..1)
 64    invalid_point          x, y or z NaN / Inf (no return) — no prediction for it
 128   non_conforming         ISO 14253-1 decision (:func:`point_decisions`): non-conformance proved,

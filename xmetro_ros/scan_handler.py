@@ -47,7 +47,8 @@ class HandlerParams:
             rule, mm.
         decision_rule: ISO 14253-1 decision rule of the classes: "guard_banded" | "simple" (flags.DECISION_RULES).
         grazing_incidence_deg, grazing_view_deg: grazing thresholds on acos(N·L), acos(N·V).
-        domain_margin: OUT_OF_DOMAIN margin, share of each feature's training range.
+        domain_margin: OUT_OF_DOMAIN margin, share of each feature's training range, and of the multivariate
+            domain's threshold (flagged above (1 + margin) × threshold).
         normal_quality_min: UNRELIABLE_NORMAL below this normal quality (0..1).
         thresholds: verdict thresholds.
         max_points, cloud_overflow: cap on width × height and what to do above it ("reject" | "decimate").
@@ -226,8 +227,10 @@ class ScanHandler:
             pred = np.asarray(up.errors, dtype=np.float64)
             U = np.asarray(up.U, dtype=np.float64)
             if self.model.card.get("domain_mv"):
+                # domain_margin widens the multivariate threshold as it widens each feature's range (U is widened
+                # from distance 1 on, whatever the margin)
                 with np.errstate(invalid="ignore"):
-                    mv_ood = np.asarray(up.domain_distance) > 1.0
+                    mv_ood = np.asarray(up.domain_distance) > 1.0 + p.domain_margin
         else:
             pred = np.asarray(self.model.predict(X), dtype=np.float64)
             U = np.full_like(pred, np.nan)

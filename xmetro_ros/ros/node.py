@@ -7,9 +7,10 @@ Topics (names relative to the node; ``~`` = the node's private namespace):
 - sub ``scanner_settings`` (xmetro_ros/ScannerSettings, reliable, transient-local, depth 10): each scan uses the
   latest settings stamped at or before it (last ``settings_history`` kept); none → the configured defaults
   (ScanQuality.settings_defaulted, /diagnostics WARN).
-- pub ``~/deviations`` (PointCloud2: x, y, z, dx, dy, dz, dnorm float32 metres, flags uint16; one point per
-  input point, same height × width; predicted error = nominal − measured), ``~/corrected`` (the input cloud, same
-  fields, with x, y, z + predicted error; points without a prediction unchanged), ``~/quality`` (ScanQuality),
+- pub ``~/deviations`` (PointCloud2: x, y, z, dx, dy, dz, dnorm, ux, uy, uz float32 metres, flags uint16; one
+  point per input point, same height × width; predicted error = nominal − measured, U its expanded uncertainty
+  at 95 %), ``~/corrected`` (the input cloud, same fields, with x, y, z + predicted error, residual uncertainty U;
+  points without a prediction unchanged), ``~/quality`` (ScanQuality),
   ``/diagnostics`` (DiagnosticArray, every ``diagnostics_period`` and at once on a level change).
 - services ``~/explain`` (Explain.srv), ``~/recommend_settings`` (RecommendSettings.srv).
 
