@@ -227,3 +227,40 @@ def test_explain_uncertainty_additive_and_equal_to_published_U(rig):
     req.output = 7
     r3 = call_service(explain, req, timeout=TIMEOUT)
     assert not r3.success and "unknown output" in r3.message
+
+
+def test_uncalibrated_model_set_publishes_nan_U_with_the_reason(tmp_path):
+    """Fallback: a model set without calibration (card without ``uncertainty``) — the node's core (XmetroCore, as
+    the node and ``xmetro predict`` run it) publishes NaN U, flags every predicted point no_uncertainty (and
+    undecided), says why in the message, and refuses to explain U."""
+    import json
+    import shutil
+
+    from xmetro_ros.resources import default_model_dir
+    from xmetro_ros.ros.core import XmetroCore
+    from xmetro_ros.ros.params import PARAMS
+
+    d = tmp_path / "uncalibrated"
+    shutil.copytree(os.environ.get("XMETRO_TEST_MODEL_DIR") or default_model_dir(), d)
+    card = json.loads((d / "card.json").read_text())
+    del card["uncertainty"]
+    (d / "card.json").write_text(json.dumps(card))
+    core = XmetroCore({p.name: p.default for p in PARAMS} | {"model_dir": str(d)})
+    assert core.model is not None and not core.model.calibrated
+    out = core.judge(cloud_of(_scan(150 * S, seed=3)))
+    q = out.quality
+    assert q.error_code == ScanQuality.ERROR_NONE and "no uncertainty calibration" in q.message
+    names = [f.name for f in out.deviations.fields if f.name not in ("x", "y", "z")]
+    _, a = xyz_fields(out.deviations, names)
+    flags = np.asarray(a["flags"]).astype(np.uint16)
+    fin_d = np.isfinite(np.asarray(a["dx"]))
+    assert fin_d.sum() > 1000 and np.isnan(np.asarray(a["ux"])).all()
+    assert np.all((flags[fin_d] & fl.FLAG_NO_UNCERTAINTY) > 0) and np.all((flags[fin_d] & fl.FLAG_UNDECIDED) > 0)
+    assert np.all((flags[~fin_d] & NO_PREDICTION) > 0)
+    assert q.points_undecided == fin_d.sum() and np.isnan(q.mean_uncertainty).all()
+    # every point undecided (nothing proved without U): at least WARN, with the share in the reason
+    assert q.verdict >= ScanQuality.VERDICT_WARN and "undecided fraction" in q.message, q.message
+    req = Explain.Request()
+    req.output = Explain.Request.OUTPUT_UNCERTAINTY
+    r = core.explain(req)
+    assert not r.success and "no uncertainty calibration" in r.message

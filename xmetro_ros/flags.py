@@ -38,9 +38,10 @@ scan do not count against it:
 - WARN: ``flagged / valid > warn_flagged_fraction``, or ``undecided / valid > warn_flagged_fraction``, or the
   settings were defaulted, or the cloud was decimated.
 
-"flagged" and "usable" count the quality bits only (1 to 64 and 512: :data:`QUALITY_BITS`): a decision bit says
-what the point shows about the part, not that the point is unfit; non-conforming and undecided points act through
-their own fractions above. Under the "simple" rule non-conforming = over tolerance, which is the rule before
+"flagged" and "usable" count the quality bits only (1 to 64: :data:`QUALITY_BITS`): a decision bit says what the
+point shows about the part, not that the point is unfit; non-conforming and undecided points act through their own
+fractions above. no_uncertainty is not a quality bit either: without a calibration every predicted point is
+undecided (guard-banded: WARN, the message says why) and the simple rule works as before. Under the "simple" rule non-conforming = over tolerance, which is the rule before
 uncertainty was published.
 - OK otherwise.
 """
@@ -102,7 +103,7 @@ FLAG_NAMES = ("outlier", "grazing_incidence", "grazing_view", "over_tolerance", 
               "unreliable_normal", "invalid_point", "non_conforming", "undecided", "no_uncertainty")
 #: Bits that make a point unfit ("flagged", not "usable" in the verdict); the decision bits are not among them.
 QUALITY_BITS = (FLAG_OUTLIER | FLAG_GRAZING_INCIDENCE | FLAG_GRAZING_VIEW | FLAG_OVER_TOLERANCE | FLAG_OUT_OF_DOMAIN
-                | FLAG_UNRELIABLE_NORMAL | FLAG_INVALID_POINT | FLAG_NO_UNCERTAINTY)
+                | FLAG_UNRELIABLE_NORMAL | FLAG_INVALID_POINT)
 
 VERDICT_OK, VERDICT_WARN, VERDICT_RESCAN, VERDICT_ERROR = 0, 1, 2, 3
 
