@@ -37,13 +37,13 @@ scan do not count against it:
   or fewer than ``min_valid_points`` valid points.
 - WARN: ``flagged / valid > warn_flagged_fraction``, or ``undecided / valid > warn_flagged_fraction``, or the
   settings were defaulted, or the cloud was decimated.
+- OK otherwise.
 
 "flagged" and "usable" count the quality bits only (1 to 64: :data:`QUALITY_BITS`): a decision bit says what the
 point shows about the part, not that the point is unfit; non-conforming and undecided points act through their own
 fractions above. no_uncertainty is not a quality bit either: without a calibration every predicted point is
-undecided (guard-banded: WARN, the message says why) and the simple rule works as before. Under the "simple" rule non-conforming = over tolerance, which is the rule before
-uncertainty was published.
-- OK otherwise.
+undecided (guard-banded: WARN, the message says why) and the simple rule works as before. Under the "simple" rule
+non-conforming = over tolerance, which is the rule before uncertainty was published.
 """
 
 from __future__ import annotations
