@@ -60,6 +60,8 @@ class JudgedScan:
     def __post_init__(self) -> None:
         # Kept for every judged scan in the history: only what the services need, compactly.
         self.predictions = np.asarray(self.predictions, dtype=np.float32)
+        if self.uncertainty is not None:
+            self.uncertainty = np.asarray(self.uncertainty, dtype=np.float32)
         self.index = np.asarray(self.index, dtype=np.int64)
 
     @property
