@@ -93,7 +93,7 @@ def test_outputs_match_offline_and_flags(rig):
     assert not q.settings_defaulted
     assert q.model_id == node.core.model_id != ""
     assert (dev.height, dev.width) == (msg.height, msg.width)
-    assert [f.name for f in dev.fields] == ["x", "y", "z", "dx", "dy", "dz", "dnorm", "flags"]
+    assert [f.name for f in dev.fields] == ["x", "y", "z", "dx", "dy", "dz", "dnorm", "ux", "uy", "uz", "flags"]
     assert dev.fields[-1].datatype == PointField.UINT16
 
     res = _offline(node, msg, base)
@@ -134,8 +134,9 @@ def test_outputs_match_offline_and_flags(rig):
     graz[res.prepared.index] = cos_i < np.cos(np.radians(75.0))
     assert np.array_equal((res.flags & fl.FLAG_GRAZING_INCIDENCE) > 0, graz)
 
-    # live thresholds: a tiny tolerance → every predicted point over tolerance → RESCAN; a huge one → none
-    assert all(r.successful for r in _set(node, tolerance=1e-7))
+    # live thresholds: a tiny tolerance → every predicted point over tolerance → RESCAN (simple acceptance: every
+    # such point non-conforming); a huge one → none
+    assert all(r.successful for r in _set(node, tolerance=1e-7, decision_rule="simple"))
     q2, _dev2, _ = client.send(cloud_of(sim_scan(11 * S)))
     assert q2.verdict == ScanQuality.VERDICT_RESCAN
     assert "fraction" in q2.message
@@ -150,7 +151,8 @@ def test_outputs_match_offline_and_flags(rig):
     assert not _set(node, cloud_overflow="explode")[0].successful
     assert not _set(node, model_dir="/elsewhere")[0].successful
     assert node.get_parameter("cloud_overflow").value == "reject"
-    _set(node, tolerance=0.0001, grazing_incidence_deg=75.0, grazing_view_deg=75.0, warn_flagged_fraction=0.25,
+    _set(node, tolerance=0.0001, decision_rule="guard_banded", grazing_incidence_deg=75.0, grazing_view_deg=75.0,
+         warn_flagged_fraction=0.25,
          rescan_usable_fraction=0.5, normal_quality_min=0.3, domain_margin=0.05)
 
     # big-endian data is decoded, not rejected: same deviations as the little-endian cloud

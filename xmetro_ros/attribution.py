@@ -23,10 +23,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["SET_CONTEXT", "ShapResult", "explain", "explain_in_cloud", "global_ranking"]
+__all__ = ["OUTPUTS", "SET_CONTEXT", "ShapResult", "explain", "explain_in_cloud", "global_ranking"]
 
 # Name of the extra player of :func:`explain_in_cloud` for set models: the other points of the point's set.
 SET_CONTEXT = "set_context"
+#: What can be explained: the predicted error, or its expanded uncertainty U.
+OUTPUTS = ("error", "uncertainty")
 
 
 @dataclass
@@ -52,8 +54,12 @@ def explain(
     n_permutations: int = 2,
     max_background: int = 10,
     seed: int = 0,
+    output: str = "error",
 ) -> ShapResult:
     """SHAP values of ``model_set`` (a :class:`~xmetro_ros.inference.ModelSet`) for the rows X (P, F).
+
+    output: "error" (the predicted error) or "uncertainty" (its expanded uncertainty U, which features make a point
+    uncertain; needs a calibrated model set). Additivity holds for either.
 
     background: (B, F) reference rows (None → the card's stored background, else the column medians of X);
     at most ``max_background`` rows are used (evenly spaced). ``n_permutations`` is rounded up to an even number
@@ -72,7 +78,9 @@ def explain(
         for s, k in enumerate(perm, start=1):
             cur[:, :, k] = X[None, :, k]
             states[j, :, s] = cur
-    pred = model_set.predict_batch(states.reshape(-1, P, F)).reshape(len(perms), B, F + 1, P, 3)[..., axes]
+    _check_output(output)
+    pred = model_set.predict_batch(states.reshape(-1, P, F), output=output).reshape(len(perms), B, F + 1, P, 3)
+    pred = pred[..., axes]
     return _shapley(pred, perms, list(model_set.feature_names), axes)
 
 
@@ -86,14 +94,17 @@ def explain_in_cloud(
     max_background: int = 10,
     seed: int = 0,
     max_set_rows: int = 4_000_000,
+    output: str = "error",
 ) -> ShapResult:
     """SHAP values of the published predictions of ``rows`` of a cloud (see the module docstring).
 
     X_cloud: (M, F) finite feature rows predicted together by ``model_set.predict`` (a judged scan's finite rows,
     in order); rows: (P,) indices into it. For a set model the background is thinned (evenly spaced) so that at most
     ``max_set_rows`` feature rows are predicted; additivity is exact whatever the background. Raises ValueError for
-    bad shapes, non-finite rows, rows out of range or unknown axes.
+    bad shapes, non-finite rows, rows out of range or unknown axes. ``output``: as :func:`explain` (with
+    "uncertainty", base + Σ SHAP equals the published U).
     """
+    _check_output(output)
     X_cloud = np.asarray(X_cloud, np.float32)
     rows = np.asarray(rows, np.int64).reshape(-1)
     if X_cloud.ndim != 2 or X_cloud.shape[1] != len(model_set.feature_names):
@@ -102,7 +113,7 @@ def explain_in_cloud(
         raise ValueError(f"explain: rows out of range [0, {len(X_cloud)})")
     if not model_set.has_sets:
         return explain(model_set, X_cloud[rows], background, axes=axes,
-                       n_permutations=n_permutations, max_background=max_background, seed=seed)
+                       n_permutations=n_permutations, max_background=max_background, seed=seed, output=output)
     if not np.all(np.isfinite(X_cloud)):
         raise ValueError("explain: the cloud has non-finite features (predict leaves them out of every set)")
     X = _check_rows(model_set, X_cloud[rows], axes)
@@ -125,6 +136,7 @@ def explain_in_cloud(
         for s, k in enumerate(perm, start=1):
             on[j, s:, k] = True
     pred = np.empty((J, B, steps, P, len(axes)))
+    predict_sets = model_set.predict_sets if output == "error" else model_set.predict_sets_uncertainty
     chunk = max(1, 250_000 // (J * B * steps * n))  # points per batch: ~250k feature rows per ONNX call
     for c0 in range(0, P, chunk):
         c = slice(c0, min(P, c0 + chunk))
@@ -136,9 +148,14 @@ def explain_in_cloud(
         own = np.where(on[:, None, :, None, :F], X[None, None, None, c], bg[None, :, None, None, :])  # (J,B,S,pc,F)
         sel = np.broadcast_to(is_self[c][None, None, None, :, :, None], sets.shape)
         sets[sel] = np.broadcast_to(own[:, :, :, :, None, :], sets.shape)[sel]
-        y = model_set.predict_sets(sets.reshape(-1, n, F)).reshape(J, B, steps, pc, n, 3)
+        y = predict_sets(sets.reshape(-1, n, F)).reshape(J, B, steps, pc, n, 3)
         pred[:, :, :, c] = y[:, :, :, np.arange(pc), first[c]][..., axes]
     return _shapley(pred, perms, [*list(model_set.feature_names), SET_CONTEXT], axes)
+
+
+def _check_output(output: str) -> None:
+    if output not in OUTPUTS:
+        raise ValueError(f"explain: output must be one of {OUTPUTS}, got {output!r}")
 
 
 def _check_rows(model_set, X: np.ndarray, axes) -> np.ndarray:

@@ -10,22 +10,43 @@ bit   name                   set when
 4     grazing_view           view angle acos(N·V) > ``grazing_view_deg`` (N·V <= 0: not seen at all)
 8     over_tolerance         predicted |error| (norm over x, y, z) > ``tolerance``
 16    out_of_domain          a model feature lies outside the model's training range widened by
-                             ``domain_margin`` × the range width on each side (ModelSet.domain)
+                             ``domain_margin`` × the range width on each side (ModelSet.domain), or (set by
+                             ScanHandler with a card ``domain_mv``) the multivariate domain distance exceeds
+                             1 + ``domain_margin`` (in units of its threshold)
 32    unreliable_normal      normal quality < ``normal_quality_min`` (quality from the normal estimation, 0..1)
 64    invalid_point          x, y or z NaN / Inf (no return) — no prediction for it; also any point whose
                              prediction is not finite for another reason (a point has a finite prediction or a flag)
 128   out_of_volume          finite x, y, z outside the working volume (|coordinate| > ``working_volume``,
                              non-physical, e.g. 3e38 m) — treated as no return, no prediction for it
+256   non_conforming         ISO 14253-1 decision (:func:`point_decisions`): non-conformance proved,
+                             |d| − U > tolerance ("simple" rule: |d| > tolerance)
+512   undecided              neither conformance nor non-conformance proved (guard-banded rule only), or a
+                             predicted point without a finite U
+1024  no_uncertainty         a predicted point without a finite U: the model set has no calibration (every point),
+                             or the model gave no spread for it
 ====  =====================  =====================================================================================
+
+Decision classes (:func:`point_decisions`): per predicted point, on the norm |d| of the predicted error with
+U_norm = √(Ux² + Uy² + Uz²) (if each axis' error lies within ±U_i, the error vector lies within U_norm of d, so
+the true |error| lies in |d| ± U_norm): conforming (|d| + U_norm ≤ tolerance), non-conforming
+(|d| − U_norm > tolerance), undecided otherwise (guard-banded, the default); "simple": |d| ≤ tolerance
+conforming, else non-conforming. Conforming points carry no decision bit.
 
 Verdict (:func:`verdict`), fractions taken over the *valid* (finite) points so that the empty cells of an organized
 scan do not count against it:
 
 - ERROR: the scan could not be processed (decided by the caller: error code set).
-- RESCAN: ``usable / valid < rescan_usable_fraction`` or ``over_tolerance / valid > rescan_over_tolerance_fraction``
+- RESCAN: ``usable / valid < rescan_usable_fraction`` or ``non_conforming / valid > rescan_over_tolerance_fraction``
   or fewer than ``min_valid_points`` valid points.
-- WARN: ``flagged / valid > warn_flagged_fraction``, or the settings were defaulted, or the cloud was decimated.
+- WARN: ``flagged / valid > warn_flagged_fraction``, or ``undecided / valid > warn_flagged_fraction``, or the
+  settings were defaulted, or the cloud was decimated.
 - OK otherwise.
+
+"flagged" and "usable" count the quality bits only (1 to 64: :data:`QUALITY_BITS`): a decision bit says what the
+point shows about the part, not that the point is unfit; non-conforming and undecided points act through their own
+fractions above. no_uncertainty is not a quality bit either: without a calibration every predicted point is
+undecided (guard-banded: WARN, the message says why) and the simple rule works as before. Under the "simple" rule
+non-conforming = over tolerance, which is the rule before uncertainty was published.
 """
 
 from __future__ import annotations
@@ -43,12 +64,16 @@ __all__ = [
     "FLAG_GRAZING_VIEW",
     "FLAG_INVALID_POINT",
     "FLAG_NAMES",
+    "FLAG_NON_CONFORMING",
+    "FLAG_NO_UNCERTAINTY",
     "FLAG_OUTLIER",
     "FLAG_OUT_OF_DOMAIN",
     "FLAG_OUT_OF_VOLUME",
     "FLAG_OVER_TOLERANCE",
+    "FLAG_UNDECIDED",
     "FLAG_UNRELIABLE_NORMAL",
     "NON_CONFORMING",
+    "QUALITY_BITS",
     "UNDECIDED",
     "VERDICT_ERROR",
     "VERDICT_NAMES",
@@ -60,6 +85,7 @@ __all__ = [
     "decision_classes",
     "domain_flags",
     "flag_counts",
+    "point_decisions",
     "verdict",
     "verdict_name",
 ]
@@ -72,11 +98,18 @@ FLAG_OUT_OF_DOMAIN = 16
 FLAG_UNRELIABLE_NORMAL = 32
 FLAG_INVALID_POINT = 64
 FLAG_OUT_OF_VOLUME = 128
+FLAG_NON_CONFORMING = 256
+FLAG_UNDECIDED = 512
+FLAG_NO_UNCERTAINTY = 1024
 
 FLAG_BITS = (FLAG_OUTLIER, FLAG_GRAZING_INCIDENCE, FLAG_GRAZING_VIEW, FLAG_OVER_TOLERANCE, FLAG_OUT_OF_DOMAIN,
-             FLAG_UNRELIABLE_NORMAL, FLAG_INVALID_POINT, FLAG_OUT_OF_VOLUME)
+             FLAG_UNRELIABLE_NORMAL, FLAG_INVALID_POINT, FLAG_OUT_OF_VOLUME, FLAG_NON_CONFORMING, FLAG_UNDECIDED,
+             FLAG_NO_UNCERTAINTY)
 FLAG_NAMES = ("outlier", "grazing_incidence", "grazing_view", "over_tolerance", "out_of_domain",
-              "unreliable_normal", "invalid_point", "out_of_volume")
+              "unreliable_normal", "invalid_point", "out_of_volume", "non_conforming", "undecided", "no_uncertainty")
+#: Bits that make a point unfit ("flagged", not "usable" in the verdict); the decision bits are not among them.
+QUALITY_BITS = (FLAG_OUTLIER | FLAG_GRAZING_INCIDENCE | FLAG_GRAZING_VIEW | FLAG_OVER_TOLERANCE | FLAG_OUT_OF_DOMAIN
+                | FLAG_UNRELIABLE_NORMAL | FLAG_INVALID_POINT | FLAG_OUT_OF_VOLUME)
 
 VERDICT_OK, VERDICT_WARN, VERDICT_RESCAN, VERDICT_ERROR = 0, 1, 2, 3
 
@@ -184,9 +217,25 @@ def decision_classes(d: np.ndarray, U: np.ndarray, tol: float | np.ndarray, rule
     return out
 
 
+def point_decisions(d: np.ndarray, U: np.ndarray, tol: float, rule: str = "guard_banded") -> np.ndarray:
+    """Decision class per point (uint8, :data:`CONFORMING` ...) on the error norm (see the module docstring).
+
+    Args:
+        d: (M, 3) predicted error, mm. U: (M, 3) expanded uncertainty per axis, mm (NaN: unknown).
+        tol: tolerance on |error|, mm. rule: "guard_banded" | "simple".
+    """
+    d = np.asarray(d, dtype=np.float64)
+    U = np.asarray(U, dtype=np.float64)
+    dn = np.sqrt(np.einsum("ij,ij->i", d, d))
+    un = np.sqrt(np.einsum("ij,ij->i", U, U))
+    return decision_classes(dn, un, tol, rule)
+
+
 def verdict(n_valid: int, n_usable: int, n_flagged: int, n_over_tolerance: int, th: VerdictThresholds,
-            settings_defaulted: bool = False, decimated: bool = False) -> tuple[int, str]:
-    """Verdict code and a short reason from the point counts (see the module docstring)."""
+            settings_defaulted: bool = False, decimated: bool = False, n_undecided: int = 0) -> tuple[int, str]:
+    """Verdict code and a short reason from the point counts (see the module docstring).
+
+    ``n_over_tolerance`` is the count of non-conforming points (= over tolerance under the "simple" rule)."""
     if n_valid < th.min_valid_points:
         return VERDICT_RESCAN, f"only {n_valid} valid points (< {th.min_valid_points})"
     usable = n_usable / n_valid
@@ -194,8 +243,10 @@ def verdict(n_valid: int, n_usable: int, n_flagged: int, n_over_tolerance: int, 
     if usable < th.rescan_usable_fraction:
         return VERDICT_RESCAN, f"usable fraction {usable:.3f} < {th.rescan_usable_fraction:g}"
     if over > th.rescan_over_tolerance_fraction:
-        return VERDICT_RESCAN, f"over-tolerance fraction {over:.3f} > {th.rescan_over_tolerance_fraction:g}"
+        return VERDICT_RESCAN, f"non-conforming fraction {over:.3f} > {th.rescan_over_tolerance_fraction:g}"
     reasons = []
+    if n_undecided / n_valid > th.warn_flagged_fraction:
+        reasons.append(f"undecided fraction {n_undecided / n_valid:.3f} > {th.warn_flagged_fraction:g}")
     if n_flagged / n_valid > th.warn_flagged_fraction:
         reasons.append(f"flagged fraction {n_flagged / n_valid:.3f} > {th.warn_flagged_fraction:g}")
     if settings_defaulted:

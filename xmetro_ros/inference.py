@@ -245,10 +245,10 @@ class ModelSet:
             out[ok] = self.predict_batch(X[ok][None])[0]
         return out
 
-    def predict_batch(self, Xq: np.ndarray) -> np.ndarray:
+    def predict_batch(self, Xq: np.ndarray, output: str = "error") -> np.ndarray:
         """(Q, P, F) → (Q, P, 3): Q versions of the same P-point cloud, each predicted as ``predict`` would
         (same set partition for every version). Used by the SHAP explainer and the recommender. Rows must be
-        finite."""
+        finite. ``output="uncertainty"``: U as :meth:`predict_with_uncertainty` instead of the errors."""
         Xq = np.asarray(Xq, dtype=np.float32)
         q, p, f = Xq.shape
         out = np.empty((q, p, 3))
@@ -256,7 +256,7 @@ class ModelSet:
             return out
         idx, _ = partition_sets(p, self.set_size, self.partition_seed)
         sets = Xq[:, idx].reshape(-1, self.set_size, f)  # (Q*K, n, F); point-wise members ignore the grouping
-        ys = self.predict_sets(sets)
+        ys = self.predict_sets(sets) if output == "error" else self.predict_sets_uncertainty(sets)
         # Real entries are the first p of each version's flattened sets (only the last set is padded).
         out[:, idx.reshape(-1)[:p]] = ys.reshape(q, -1, 3)[:, :p]
         return out
@@ -332,6 +332,32 @@ class ModelSet:
         """True when the card carries a conformal calibration (``uncertainty`` block)."""
         return bool(self.card.get("uncertainty", {}).get("multiplier"))
 
+    def _expand(self, sig: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(U (M, 3), domain distance (M,)) from σ̂ (M, 3) and the feature rows X (M, F): the one formula of U."""
+        if not self.calibrated:
+            raise ModelLoadError(f"model set {self.id!r} has no uncertainty calibration (card 'uncertainty')")
+        mult = np.asarray(self.card["uncertainty"]["multiplier"], np.float64)
+        dist = self.domain_distance(X)
+        with np.errstate(invalid="ignore"):
+            widen = np.where(dist > 1.0, dist, 1.0)  # NaN distance (no domain_mv) → no widening
+        floor = float(self.card["uncertainty"].get("sigma_floor_mm", 0.0))
+        U = sig + floor
+        U *= mult
+        U *= widen[:, None]
+        return U, dist
+
+    def predict_sets_uncertainty(self, sets: np.ndarray) -> np.ndarray:
+        """(K, n, F) → U (K, n, 3) mm of each set's rows predicted as one PointNet set (as :meth:`predict_sets`);
+        a set of the partition of :meth:`predict_with_uncertainty` gets exactly the published U of its points (the
+        explainer of U relies on it). Raises ModelLoadError without a calibration."""
+        sets = np.asarray(sets, dtype=np.float32)
+        k, n, f = sets.shape
+        if not self.calibrated:
+            raise ModelLoadError(f"model set {self.id!r} has no uncertainty calibration (card 'uncertainty')")
+        _, sig = self.predict_sets_sigma(sets)
+        U, _ = self._expand(sig.reshape(k * n, 3), sets.reshape(k * n, f))
+        return U.reshape(k, n, 3)
+
     def predict_with_uncertainty(self, X: np.ndarray) -> UncertainPrediction:
         """Errors and their expanded uncertainty U (mm) for the feature rows X (M, F) of ONE cloud.
 
@@ -341,14 +367,7 @@ class ModelSet:
             raise ModelLoadError(f"model set {self.id!r} has no uncertainty calibration (card 'uncertainty')")
         X = self._check_X(X)
         err, sig = self.predict_with_sigma(X)
-        mult = np.asarray(self.card["uncertainty"]["multiplier"], np.float64)
-        dist = self.domain_distance(X)
-        with np.errstate(invalid="ignore"):
-            widen = np.where(dist > 1.0, dist, 1.0)  # NaN distance (no domain_mv) → no widening
-        floor = float(self.card["uncertainty"].get("sigma_floor_mm", 0.0))
-        U = sig + floor
-        U *= mult
-        U *= widen[:, None]
+        U, dist = self._expand(sig, X)
         return UncertainPrediction(err, U, sig, dist, self.out_of_domain_mv(X, dist))
 
     @property

@@ -1,8 +1,13 @@
 """The one processing path of a scan (ROS-free), shared by the live node and the offline ``xmetro predict``.
 
     scan (mm) → point cap → outlier removal + normals (``preprocess.prepare_scan``) → the model's features (names
-    from the model card, ``features.compute_features``, float32) → ONNX Runtime inference (x, y, z) → flags
-    (:mod:`xmetro_ros.flags`) → verdict → quality summary.
+    from the model card, ``features.compute_features``, float32) → ONNX Runtime inference (x, y, z) and, with a
+    calibrated model set, the expanded uncertainty U (95 %) per axis in the same call (same PointNet sets:
+    ``ModelSet.predict_with_uncertainty``) → flags and ISO 14253-1 decision classes (:mod:`xmetro_ros.flags`) →
+    verdict → quality summary.
+
+Without a calibration U is NaN and every predicted point carries NO_UNCERTAINTY (and is UNDECIDED under the
+guard-banded rule); the summary's message says why.
 
 Units: millimetres inside (points, deviations, tolerance_mm); the node converts to metres on its topics.
 Deviations are predicted errors ``nominal − measured`` per axis, so ``measured + deviation`` is the corrected point.
@@ -21,6 +26,7 @@ from .scan import Scan
 from .scanner import ScannerModel, SettingsError
 
 __all__ = [
+    "NO_DECISION",
     "HandlerParams",
     "ScanError",
     "ScanHandler",
@@ -75,9 +81,12 @@ class HandlerParams:
     """Processing parameters (internal units: mm, degrees).
 
     Attributes:
-        tolerance_mm: OVER_TOLERANCE threshold on the predicted |error| norm, mm.
+        tolerance_mm: OVER_TOLERANCE threshold on the predicted |error| norm, and the tolerance of the decision
+            rule, mm.
+        decision_rule: ISO 14253-1 decision rule of the classes: "guard_banded" | "simple" (flags.DECISION_RULES).
         grazing_incidence_deg, grazing_view_deg: grazing thresholds on acos(N·L), acos(N·V).
-        domain_margin: OUT_OF_DOMAIN margin, share of each feature's training range.
+        domain_margin: OUT_OF_DOMAIN margin, share of each feature's training range, and of the multivariate
+            domain's threshold (flagged above (1 + margin) × threshold).
         normal_quality_min: UNRELIABLE_NORMAL below this normal quality (0..1).
         thresholds: verdict thresholds.
         max_points, cloud_overflow: cap on width × height and what to do above it ("reject" | "decimate").
@@ -87,6 +96,7 @@ class HandlerParams:
     """
 
     tolerance_mm: float = 0.1
+    decision_rule: str = "guard_banded"
     grazing_incidence_deg: float = 75.0
     grazing_view_deg: float = 75.0
     domain_margin: float = 0.05
@@ -103,6 +113,7 @@ class HandlerParams:
         """From the node's parameter values (SI: tolerance in metres)."""
         return cls(
             tolerance_mm=float(v["tolerance"]) * 1e3,
+            decision_rule=str(v.get("decision_rule", "guard_banded")),
             grazing_incidence_deg=float(v["grazing_incidence_deg"]),
             grazing_view_deg=float(v["grazing_view_deg"]),
             domain_margin=float(v["domain_margin"]),
@@ -136,6 +147,11 @@ class ScanResult:
         context: the ``features.FeatureContext`` (for the recommender).
         scan: the scan actually processed (after the point cap).
         kept: flat indices of the input points kept by the point cap (None: all, not decimated).
+        uncertainty: (N, 3) float64 mm expanded uncertainty U (95 %) per point of the scan, flat order; NaN where
+            there is no prediction or no calibration (flag NO_UNCERTAINTY).
+        row_uncertainty: (M, 3) float64 mm U for the rows of ``prepared`` (same order as ``predictions``).
+        decisions: (N,) uint8 decision class (flags.CONFORMING / NON_CONFORMING / UNDECIDED) per point; 255 where
+            there is no prediction.
     """
 
     deviations: np.ndarray
@@ -147,6 +163,13 @@ class ScanResult:
     context: Any
     scan: Scan
     kept: np.ndarray | None = None
+    uncertainty: np.ndarray | None = None
+    row_uncertainty: np.ndarray | None = None
+    decisions: np.ndarray | None = None
+
+
+#: ``ScanResult.decisions`` of a point without a prediction.
+NO_DECISION = 255
 
 
 def warm_up() -> float:
@@ -275,13 +298,31 @@ class ScanHandler:
             raise ScanError("MISSING_INPUT_FIELD", str(e)) from e
         check_deadline(deadline, "inference")
         # Rows with a non-finite feature get NaN from the model (and are kept out of PointNet sets).
-        pred = np.asarray(self.model.predict(X), dtype=np.float64)
+        # U comes from the same call as the errors: a PointNet point's prediction depends on its set.
+        unc_note = ""
+        mv_ood = None
+        if getattr(self.model, "calibrated", False):
+            up = self.model.predict_with_uncertainty(X)
+            pred = np.asarray(up.errors, dtype=np.float64)
+            U = np.asarray(up.U, dtype=np.float64)
+            if self.model.card.get("domain_mv"):
+                # domain_margin widens the multivariate threshold as it widens each feature's range (U is widened
+                # from distance 1 on, whatever the margin)
+                with np.errstate(invalid="ignore"):
+                    mv_ood = np.asarray(up.domain_distance) > 1.0 + p.domain_margin
+        else:
+            pred = np.asarray(self.model.predict(X), dtype=np.float64)
+            U = np.full_like(pred, np.nan)
+            unc_note = (f"model set {getattr(self.model, 'id', '?')!r} has no uncertainty calibration: "
+                        "no U (NaN, flag no_uncertainty)")
         check_deadline(deadline, "flags")
         finite = np.isfinite(pred[:, 0]) & np.isfinite(pred[:, 1]) & np.isfinite(pred[:, 2])
 
         idx = np.asarray(prepared.index, dtype=np.int64)
         dev = np.full((n, 3), np.nan, dtype=np.float64)
         dev[idx] = pred
+        unc = np.full((n, 3), np.nan, dtype=np.float64)
+        unc[idx] = U
         flags = np.zeros(n, dtype=np.uint16)
         flags[~finite_xyz] |= fl.FLAG_INVALID_POINT
         flags[outside] |= fl.FLAG_OUT_OF_VOLUME
@@ -292,37 +333,63 @@ class ScanHandler:
                                     cos_i=ctx.n_dot_l(), cos_v=ctx.n_dot_v())
         lo, hi = self.model.domain
         kept_flags |= fl.domain_flags(X, lo, hi, p.domain_margin)
+        if mv_ood is not None:  # the multivariate domain complements the per-feature range check
+            kept_flags[mv_ood] |= fl.FLAG_OUT_OF_DOMAIN
         kept_flags[np.asarray(prepared.normal_quality) < p.normal_quality_min] |= fl.FLAG_UNRELIABLE_NORMAL
         dnorm = np.sqrt(np.einsum("ij,ij->i", pred, pred))
         kept_flags[dnorm > p.tolerance_mm] |= fl.FLAG_OVER_TOLERANCE
         kept_flags[~finite] |= fl.FLAG_INVALID_POINT
+        no_u = finite & ~np.isfinite(U).all(axis=1)
+        kept_flags[no_u] |= fl.FLAG_NO_UNCERTAINTY
+        cls = np.full(len(pred), NO_DECISION, dtype=np.uint8)
+        cls[finite] = fl.point_decisions(pred[finite], U[finite], p.tolerance_mm, p.decision_rule)
+        kept_flags[cls == fl.NON_CONFORMING] |= fl.FLAG_NON_CONFORMING
+        kept_flags[cls == fl.UNDECIDED] |= fl.FLAG_UNDECIDED
         flags[idx] |= kept_flags
+        decisions = np.full(n, NO_DECISION, dtype=np.uint8)
+        decisions[idx] = cls
         # The invariant, whatever a stage did: no point with a non-finite prediction and flags 0.
         silent = (flags == 0) & ~(np.isfinite(dev[:, 0]) & np.isfinite(dev[:, 1]) & np.isfinite(dev[:, 2]))
         if silent.any():
             flags[silent] |= fl.FLAG_INVALID_POINT
 
-        quality = self.summarize(flags, pred, n_valid, settings_defaulted, kept is not None, n, finite=finite)
+        quality = self.summarize(flags, pred, n_valid, settings_defaulted, kept is not None, n, finite=finite,
+                                 U=U[finite & ~no_u], decisions=cls[finite], note=unc_note)
         return ScanResult(deviations=dev, flags=flags, quality=quality, prepared=prepared, features=X,
-                          predictions=pred, context=ctx, scan=scan, kept=kept)
+                          predictions=pred, context=ctx, scan=scan, kept=kept, uncertainty=unc, row_uncertainty=U,
+                          decisions=decisions)
 
     def summarize(self, flags: np.ndarray, pred: np.ndarray, n_valid: int, settings_defaulted: bool,
-                  decimated: bool, n_received: int, finite: np.ndarray | None = None) -> dict[str, Any]:
-        """Quality summary (mm): counts, per-flag counts, mean / p95 |error| per axis, verdict and its reason.
+                  decimated: bool, n_received: int, finite: np.ndarray | None = None, U: np.ndarray | None = None,
+                  decisions: np.ndarray | None = None, note: str = "") -> dict[str, Any]:
+        """Quality summary (mm): counts, per-flag counts, mean / p95 |error| and U per axis, decision class counts,
+        verdict and its reason.
 
         ``pred`` (M, 3) mm: the predictions the error statistics are over, only its rows ``finite`` (bool (M,))
-        when given. Compiled one-pass statistics (xmetro_ros.scan_stats), the same numbers as numpy's
-        ``count_nonzero`` / ``flag_counts`` / ``mean(axis=0)`` / ``percentile(95, axis=0)`` (tested)."""
+        when given; ``U`` (Q, 3): finite U of the predicted points that have one; ``decisions`` (P,): the class of
+        each finite prediction; ``note``: added to the message (why there is no U). Compiled one-pass statistics
+        (xmetro_ros.scan_stats), the same numbers as numpy's ``count_nonzero`` / ``flag_counts`` / ``mean(axis=0)``
+        / ``percentile(95, axis=0)`` (tested)."""
         from .scan_stats import abs_error_stats, flag_tally
 
         n_flagged, counts = flag_tally(flags, fl.FLAG_BITS)
-        # Usable = valid and unflagged; the verdict fractions are over valid points (not the empty grid cells).
-        n_usable = n_received - n_flagged
-        over = counts[fl.FLAG_BITS.index(fl.FLAG_OVER_TOLERANCE)]
-        code, reason = fl.verdict(n_valid, n_usable, n_flagged - (n_received - n_valid), over, self.params.thresholds,
-                                  settings_defaulted=settings_defaulted, decimated=decimated)
+        # Usable = valid and without a quality bit; the verdict fractions are over valid points (not the empty
+        # grid cells). Decision bits do not make a point unusable (flags module docstring).
+        n_quality = int(np.count_nonzero(np.asarray(flags) & fl.QUALITY_BITS))
+        n_usable = n_received - n_quality
+        dec_counts = (np.bincount(np.asarray(decisions, dtype=np.int64), minlength=3)[:3] if decisions is not None
+                      and len(decisions) else np.zeros(3, dtype=np.int64))
+        code, reason = fl.verdict(n_valid, n_usable, n_quality - (n_received - n_valid),
+                                  int(dec_counts[fl.NON_CONFORMING]), self.params.thresholds,
+                                  settings_defaulted=settings_defaulted, decimated=decimated,
+                                  n_undecided=int(dec_counts[fl.UNDECIDED]))
         mean, p95 = abs_error_stats(pred, finite, 95.0)
+        Ua = np.empty((0, 3)) if U is None else np.asarray(U, dtype=np.float64)
+        u_mean = Ua.mean(axis=0) if len(Ua) else np.full(3, np.nan)
+        u_p95 = np.percentile(Ua, 95, axis=0) if len(Ua) else np.full(3, np.nan)
         notes = [reason]
+        if note:
+            notes.append(note)
         if settings_defaulted:
             notes.append("no valid ScannerSettings at or before the scan: configured defaults used")
         if decimated:
@@ -339,6 +406,11 @@ class ScanHandler:
             "flag_counts": counts,
             "mean_abs_error_mm": [float(x) for x in mean],
             "p95_abs_error_mm": [float(x) for x in p95],
+            "mean_uncertainty_mm": [float(x) for x in u_mean],
+            "p95_uncertainty_mm": [float(x) for x in u_p95],
+            "decision_rule": self.params.decision_rule,
+            "decision_names": list(fl.DECISION_NAMES),
+            "decision_counts": [int(c) for c in dec_counts],
             "usable_fraction": n_usable / n_received if n_received else 0.0,
             "settings_defaulted": bool(settings_defaulted),
             "decimated": bool(decimated),

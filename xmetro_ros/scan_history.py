@@ -39,6 +39,8 @@ class JudgedScan:
             finiteness is used).
         context: features.FeatureContext of those points (for the recommender).
         settings, pose, scanner_id, model_id: how it was taken and judged.
+        uncertainty: (M, 3) mm published U of those points (None / NaN: none); kept for reference only, the
+            explainer recomputes U from the features.
     """
 
     stamp_ns: int
@@ -53,10 +55,13 @@ class JudgedScan:
     pose: Any
     scanner_id: str
     model_id: str
+    uncertainty: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         # Kept for every judged scan in the history: only what the services need, compactly.
         self.predictions = np.asarray(self.predictions, dtype=np.float32)
+        if self.uncertainty is not None:
+            self.uncertainty = np.asarray(self.uncertainty, dtype=np.float32)
         self.index = np.asarray(self.index, dtype=np.int64)
 
     @property
@@ -148,7 +153,8 @@ def select_rows(judged: JudgedScan, indices: np.ndarray, center_mm: np.ndarray |
     return rows, note
 
 
-def explain_rows(model_set: Any, judged: JudgedScan, rows: np.ndarray, axes: tuple[int, ...]) -> dict[str, Any]:
+def explain_rows(model_set: Any, judged: JudgedScan, rows: np.ndarray, axes: tuple[int, ...],
+                 output: str = "error") -> dict[str, Any]:
     """SHAP explanation of the published predictions of ``rows`` of ``judged`` (mm): base (A,), shap (P, F', A),
     predictions (P, A) (= the published deviations), player values X (P, F'), names and units of the F' players,
     mean |SHAP| (F', A) over the explained points, point indices (P,).
@@ -156,6 +162,9 @@ def explain_rows(model_set: Any, judged: JudgedScan, rows: np.ndarray, axes: tup
     The players are the model's features, plus ``set_context`` (the other points of the point's PointNet set; its
     value is how many distinct other points that set holds) when the model has a set member
     (``learn.shap_explain.explain_in_cloud``).
+
+    ``output="uncertainty"`` explains the published expanded uncertainty U instead of the error (which features
+    make a point uncertain): predictions = base + Σ SHAP = U. ServiceError when the model set has no calibration.
     """
     from .attribution import SET_CONTEXT, explain_in_cloud
 
@@ -163,7 +172,10 @@ def explain_rows(model_set: Any, judged: JudgedScan, rows: np.ndarray, axes: tup
     finite = np.isfinite(feats).all(axis=1)
     # The model predicted the finite rows together, in order (inference.ModelSet.predict): explain in that cloud.
     cloud_row = np.cumsum(finite) - 1
-    res = explain_in_cloud(model_set, feats[finite], cloud_row[rows], None, axes=axes)
+    if output == "uncertainty" and not getattr(model_set, "calibrated", False):
+        raise ServiceError(f"model set {getattr(model_set, 'id', '?')!r} has no uncertainty calibration: "
+                           "no U to explain")
+    res = explain_in_cloud(model_set, feats[finite], cloud_row[rows], None, axes=axes, output=output)
     X = feats[rows].astype(np.float64)
     names = list(model_set.feature_names)
     units = list(model_set.feature_units)
@@ -186,4 +198,5 @@ def explain_rows(model_set: Any, judged: JudgedScan, rows: np.ndarray, axes: tup
         "mean_abs_shap": np.abs(shap_vals).mean(axis=0),
         "point_indices": np.asarray(judged.index, dtype=np.int64)[rows],
         "axis_names": [AXIS_NAMES[a] for a in axes],
+        "output": output,
     }

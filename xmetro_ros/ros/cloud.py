@@ -475,6 +475,7 @@ def create_cloud_from_arrays(
     width: int | None = None,
     *,
     is_dense: bool | None = None,
+    point_step: int | None = None,
 ) -> PointCloud2:
     """Pack named per-point arrays into a PointCloud2 (fields in the mapping's order, packed, native byte order).
 
@@ -486,6 +487,7 @@ def create_cloud_from_arrays(
             etc. are refused.
         height, width: cloud shape; default from the arrays ((H, W) leading shape) or height 1, width N.
         is_dense: default: true when every float value is finite.
+        point_step: bytes per point, >= the packed size (None: packed); the padding bytes are zero.
 
     Raises:
         ValueError: empty mapping, inconsistent lengths, unsupported dtype, height × width ≠ N.
@@ -523,7 +525,10 @@ def create_cloud_from_arrays(
         width = n // int(height) if height else 0
     if int(height) * int(width) != n:
         raise ValueError(f"height {height} × width {width} != {n} points")
-    point_step = offset
+    if point_step is None:
+        point_step = offset
+    elif point_step < offset:
+        raise ValueError(f"point_step {point_step} < packed size {offset}")
     dtype = dtype_from_fields(fields, point_step)
     data = array.array("B", b"\0") * (n * point_step)
     if n:

@@ -229,13 +229,14 @@ class XmetroCore:
         # x, y, z exactly as received (float32 metres), one point per (kept) input point.
         xyz, _ = xyz_fields(msg)
         points_m = np.asarray(xyz if keep is None else xyz[keep], dtype=np.float32)
-        dev_cloud = deviations_cloud(msg.header, points_m, res.deviations, res.flags, out_h, out_w)
+        dev_cloud = deviations_cloud(msg.header, points_m, res.deviations, res.flags, out_h, out_w,
+                                     unc_mm=res.uncertainty)
         corrected = corrected_cloud(msg, res.deviations, keep, out_h, out_w)
         self.history.add(JudgedScan(
             stamp_ns=stamp_ns, frame_id=msg.header.frame_id, n_points=out_h * out_w,
             index=np.asarray(res.prepared.index), points=np.asarray(res.prepared.points), features=res.features,
             predictions=res.predictions, context=_lean_context(res.context), settings=entry.settings, pose=entry.pose,
-            scanner_id=self.scanner.id, model_id=self.model_id))
+            scanner_id=self.scanner.id, model_id=self.model_id, uncertainty=res.row_uncertainty))
         q.processing_latency = time.monotonic() - t0
         qd = res.quality
         return CoreOutput(q, dev_cloud, corrected, f"scan {stamp_ns}: {qd['verdict_name']} ({qd['message']})")
@@ -253,7 +254,11 @@ class XmetroCore:
             c = req.region_center
             rows, note = select_rows(judged, np.asarray(req.indices, dtype=np.int64), m_to_mm([c.x, c.y, c.z]),
                                      m_to_mm(float(req.region_radius)), cap)
-            r = explain_rows(self.model, judged, rows, axes)
+            output = {Explain.Request.OUTPUT_ERROR: "error",
+                      Explain.Request.OUTPUT_UNCERTAINTY: "uncertainty"}.get(int(req.output))
+            if output is None:
+                raise ServiceError(f"unknown output {int(req.output)} (OUTPUT_ERROR=0, OUTPUT_UNCERTAINTY=1)")
+            r = explain_rows(self.model, judged, rows, axes, output=output)
         except ServiceError as e:
             return failed_response(self._explain_base(), str(e))
         except Exception as e:

@@ -61,6 +61,10 @@ def fill_quality(q: ScanQuality, summary: dict[str, Any]) -> ScanQuality:
     q.mean_abs_error = [mm_to_m(float(v)) for v in summary["mean_abs_error_mm"]]
     q.p95_abs_error = [mm_to_m(float(v)) for v in summary["p95_abs_error_mm"]]
     q.usable_fraction = float(summary["usable_fraction"])
+    q.mean_uncertainty = [mm_to_m(float(v)) for v in summary["mean_uncertainty_mm"]]
+    q.p95_uncertainty = [mm_to_m(float(v)) for v in summary["p95_uncertainty_mm"]]
+    q.decision_rule = str(summary["decision_rule"])
+    q.points_conforming, q.points_non_conforming, q.points_undecided = (int(c) for c in summary["decision_counts"])
     return q
 
 
@@ -85,6 +89,7 @@ def explain_response(result: dict[str, Any], model_id: str, message: str) -> Exp
     resp.shap_values = mm_to_m(result["shap"]).ravel().tolist()
     resp.feature_values = result["features"].ravel().tolist()
     resp.predictions = mm_to_m(result["predictions"]).ravel().tolist()
+    resp.output_name = str(result.get("output", "error"))
     resp.mean_abs_shap = mm_to_m(result["mean_abs_shap"]).ravel().tolist()
     return resp
 

@@ -12,10 +12,10 @@ Topics (names relative to the node; ``~`` = the node's private namespace):
 - every subscription's QoS can be overridden with ROS 2's standard parameters, e.g.
   ``qos_overrides./scan.subscription.reliability``, ``qos_overrides./scanner_settings.subscription.durability``,
   ``qos_overrides./scanner_settings.subscription_volatile.reliability`` (read at start / on activate).
-- pub ``~/deviations`` (PointCloud2: x, y, z, dx, dy, dz, dnorm float32 metres, flags uint16, point_step 32 with
-  every field aligned; one point per input point, same height × width; predicted error = nominal − measured),
-  ``~/corrected`` (the input cloud, same fields, with x, y, z + predicted error; points without a prediction
-  unchanged), ``~/quality`` (ScanQuality), ``/diagnostics`` (DiagnosticArray, every ``diagnostics_period`` and at
+- pub ``~/deviations`` (PointCloud2: x, y, z, dx, dy, dz, dnorm, ux, uy, uz float32 metres, flags uint16,
+  point_step 44 with every field aligned; one point per input point, same height × width; predicted error =
+  nominal − measured, U its expanded uncertainty at 95 %), ``~/corrected`` (the input cloud, same fields, with
+  x, y, z + predicted error, residual uncertainty U; points without a prediction unchanged), ``~/quality`` (ScanQuality), ``/diagnostics`` (DiagnosticArray, every ``diagnostics_period`` and at
   once on a level change).
 - services ``~/explain`` (Explain.srv), ``~/recommend_settings`` (RecommendSettings.srv); action
   ``~/recommend_settings`` (RecommendSettings.action: the same search with feedback and cancel).

@@ -245,7 +245,7 @@ def _cmp_quality(i: int, a: Any, b: Any, tol: Tolerance, diffs: list[str]) -> No
     # Counts derived from flags may differ by the allowed flag mismatches.
     n = max(1, int(a.points_received))
     slack = int(np.floor(tol.flags_max_mismatch_fraction * n))
-    for k in ("points_flagged", "flag_counts"):
+    for k in ("points_flagged", "flag_counts", "points_conforming", "points_non_conforming", "points_undecided"):
         va, vb = np.atleast_1d(da.pop(k)), np.atleast_1d(db.pop(k))
         if va.shape != vb.shape or np.any(np.abs(va.astype(np.int64) - vb.astype(np.int64)) > slack):
             diffs.append(f"scan {i} quality.{k}: {va.tolist()} != {vb.tolist()} (slack {slack})")

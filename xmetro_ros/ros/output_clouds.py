@@ -1,9 +1,10 @@
 """The node's two output clouds, built byte by byte into buffers the messages adopt (no extra copies).
 
 - ``~/deviations``: one record per (kept) input point, x, y, z as received and the predicted error dx, dy, dz,
-  dnorm (float32, metres), flags (uint16), 2 bytes of padding: point_step 32, every field at an offset aligned
-  to its size in every point (packed, point_step 30 put the floats of odd points at 2 mod 4);
-- ``~/corrected``: the input cloud (same fields, byte order and point layout) with x, y, z + predicted error.
+  dnorm, their expanded uncertainty (95 %) ux, uy, uz (float32, metres), flags (uint16), 2 bytes of padding:
+  point_step 44, every field at an offset aligned to its size in every point;
+- ``~/corrected``: the input cloud (same fields, byte order and point layout) with x, y, z + predicted error; the
+  residual uncertainty of each corrected coordinate is U (ux, uy, uz of ``~/deviations``).
 
 Frames: the input cloud's (``header.frame_id``); lengths in metres as on every topic.
 """
@@ -26,20 +27,22 @@ __all__ = ["DEVIATIONS_FIELDS", "DEVIATIONS_POINT_STEP", "corrected_cloud", "dev
 #: ``~/deviations`` point layout: (name, offset, PointField datatype); point_step :data:`DEVIATIONS_POINT_STEP`.
 DEVIATIONS_FIELDS = (("x", 0, PointField.FLOAT32), ("y", 4, PointField.FLOAT32), ("z", 8, PointField.FLOAT32),
                      ("dx", 12, PointField.FLOAT32), ("dy", 16, PointField.FLOAT32), ("dz", 20, PointField.FLOAT32),
-                     ("dnorm", 24, PointField.FLOAT32), ("flags", 28, PointField.UINT16))
-DEVIATIONS_POINT_STEP = 32
+                     ("dnorm", 24, PointField.FLOAT32), ("ux", 28, PointField.FLOAT32), ("uy", 32, PointField.FLOAT32),
+                     ("uz", 36, PointField.FLOAT32), ("flags", 40, PointField.UINT16))
+DEVIATIONS_POINT_STEP = 44
 
 
 def deviations_cloud(header: Any, points_m: np.ndarray, dev_mm: np.ndarray, flags: np.ndarray, height: int,
-                     width: int) -> PointCloud2:
+                     width: int, unc_mm: np.ndarray | None = None) -> PointCloud2:
     """``~/deviations``: ``points_m`` (N, 3) float32 metres as received, ``dev_mm`` (N, 3) predicted error in mm
-    (NaN where none), ``flags`` (N,) uint16; ``height × width = N``. Layout :data:`DEVIATIONS_FIELDS`, 32 bytes a
-    point (cloud.create_cloud_from_arrays packs fields without padding, hence the structured dtype here)."""
+    (NaN where none), ``unc_mm`` (N, 3) its expanded uncertainty U (95 %) in mm (NaN where none; None: all NaN),
+    ``flags`` (N,) uint16; ``height × width = N``. Layout :data:`DEVIATIONS_FIELDS`, 44 bytes a point."""
     n = int(height) * int(width)
     if points_m.shape[0] != n or dev_mm.shape[0] != n or flags.shape[0] != n:
         raise ValueError(f"height {height} × width {width} != {points_m.shape[0]} points")
     dev_m = mm_to_m(dev_mm).astype(np.float32)
     dnorm = np.sqrt(np.einsum("ij,ij->i", dev_m, dev_m))
+    u_m = np.full(dev_m.shape, np.nan, np.float32) if unc_mm is None else mm_to_m(unc_mm).astype(np.float32)
     fields = [PointField(name=name, offset=off, datatype=code, count=1) for name, off, code in DEVIATIONS_FIELDS]
     dtype = dtype_from_fields(fields, DEVIATIONS_POINT_STEP)
     data = array.array("B", b"\0") * (n * DEVIATIONS_POINT_STEP)  # zeroed: the padding bytes are 0
@@ -48,6 +51,7 @@ def deviations_cloud(header: Any, points_m: np.ndarray, dev_mm: np.ndarray, flag
         for k, name in enumerate("xyz"):
             view[name] = points_m[:, k]
             view["d" + name] = dev_m[:, k]
+            view["u" + name] = u_m[:, k]
         view["dnorm"] = dnorm
         view["flags"] = flags
         del view

@@ -56,11 +56,15 @@ PARAMS: tuple[ParamSpec, ...] = (
               choices=("reliable", "best_effort"), read_only=True),
     ParamSpec("queue_depth", 4, "scans", "scans waiting for the worker; the oldest is dropped (and counted) "
               "when full", 1, 64, read_only=True),
-    ParamSpec("tolerance", 0.0001, "m", "flag OVER_TOLERANCE when the predicted |error| exceeds it", 1e-7, 0.1),
+    ParamSpec("tolerance", 0.0001, "m", "flag OVER_TOLERANCE when the predicted |error| exceeds it; tolerance of "
+              "the decision rule", 1e-7, 0.1),
+    ParamSpec("decision_rule", "guard_banded", "", "ISO 14253-1 decision rule of the per-point classes: "
+              "guard_banded (conforming |d|+U <= tolerance, non-conforming |d|-U > tolerance, else undecided) or "
+              "simple (|d| <= tolerance conforming, else non-conforming)", choices=("guard_banded", "simple")),
     ParamSpec("grazing_incidence_deg", 75.0, "deg", "flag GRAZING_INCIDENCE above this incidence angle", 0.0, 90.0),
     ParamSpec("grazing_view_deg", 75.0, "deg", "flag GRAZING_VIEW above this view angle", 0.0, 90.0),
     ParamSpec("domain_margin", 0.05, "fraction", "OUT_OF_DOMAIN margin as a share of each feature's training "
-              "range", 0.0, 10.0),
+              "range and of the multivariate domain's threshold", 0.0, 10.0),
     ParamSpec("normal_quality_min", 0.3, "0..1", "flag UNRELIABLE_NORMAL below this normal quality", 0.0, 1.0),
     ParamSpec("warn_flagged_fraction", 0.25, "fraction", "WARN when more valid points are flagged", 0.0, 1.0),
     ParamSpec("rescan_usable_fraction", 0.5, "fraction", "RESCAN when fewer valid points are unflagged",

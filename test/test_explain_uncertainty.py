@@ -1,0 +1,51 @@
+"""SHAP of the expanded uncertainty U (``attribution`` with ``output="uncertainty"``) on the shipped model set:
+additive, and equal to ``ModelSet.predict_with_uncertainty``'s U, both for the in-cloud scheme (PointNet sets) and
+for the plain scheme (``predict_batch``), which point-wise model sets use."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from xmetro_ros.artifacts import Sphere
+from xmetro_ros.attribution import explain, explain_in_cloud
+from xmetro_ros.features import FeatureContext, compute_features
+from xmetro_ros.inference import ModelSet
+from xmetro_ros.preprocess import PreprocessConfig, prepare_scan
+from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.sim import simulate_scan
+
+
+@pytest.fixture(scope="module")
+def cloud():
+    ms = ModelSet.load()
+    scan = simulate_scan(Sphere(20.0, np.zeros(3)), ScanSettings(6.0, 3.0, 0.1), seed=31)
+    prep = prepare_scan(scan, PreprocessConfig(), scanner=ScannerModel.load())
+    X = compute_features(list(ms.feature_names), FeatureContext.from_prepared(prep), dtype=np.float32)
+    X = X[np.isfinite(X).all(axis=1)][:3000]
+    return ms, X
+
+
+def test_in_cloud_shap_of_U_is_additive_and_equals_published_U(cloud):
+    ms, X = cloud
+    assert ms.calibrated and ms.has_sets
+    rows = np.arange(0, len(X), 97)
+    up = ms.predict_with_uncertainty(X)
+    r = explain_in_cloud(ms, X, rows, output="uncertainty", max_background=3)
+    np.testing.assert_allclose(r.base_values + r.shap.sum(axis=1), r.predictions, rtol=0, atol=1e-6)  # mm: 1e-9 m
+    np.testing.assert_allclose(r.predictions, up.U[rows], rtol=0, atol=1e-6)
+    assert r.feature_names[-1] == "set_context"
+    # U is not the error: the explanation differs from that of d
+    rd = explain_in_cloud(ms, X, rows, max_background=3)
+    np.testing.assert_allclose(rd.predictions, up.errors[rows], rtol=0, atol=1e-6)
+    assert not np.allclose(rd.shap, r.shap)
+    with pytest.raises(ValueError, match="output"):
+        explain_in_cloud(ms, X, rows, output="variance")
+
+
+def test_plain_shap_of_U_through_predict_batch(cloud):
+    ms, X = cloud
+    Xs = X[:200]
+    r = explain(ms, Xs, output="uncertainty", max_background=2)
+    np.testing.assert_allclose(r.base_values + r.shap.sum(axis=1), r.predictions, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(r.predictions, ms.predict_with_uncertainty(Xs).U, rtol=0, atol=1e-6)
