@@ -15,8 +15,8 @@ Topics (names relative to the node; ``~`` = the node's private namespace):
 - pub ``~/deviations`` (PointCloud2: x, y, z, dx, dy, dz, dnorm, ux, uy, uz float32 metres, flags uint16,
   point_step 44 with every field aligned; one point per input point, same height × width; predicted error =
   nominal − measured, U its expanded uncertainty at 95 %), ``~/corrected`` (the input cloud, same fields, with
-  x, y, z + predicted error, residual uncertainty U; points without a prediction unchanged), ``~/quality`` (ScanQuality), ``/diagnostics`` (DiagnosticArray, every ``diagnostics_period`` and at
-  once on a level change).
+  x, y, z + predicted error, residual uncertainty U; points without a prediction unchanged), ``~/quality``
+  (ScanQuality), ``/diagnostics`` (DiagnosticArray, every ``diagnostics_period`` and at once on a level change).
 - services ``~/explain`` (Explain.srv), ``~/recommend_settings`` (RecommendSettings.srv); action
   ``~/recommend_settings`` (RecommendSettings.action: the same search with feedback and cancel).
 
