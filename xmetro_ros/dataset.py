@@ -166,6 +166,8 @@ def scan_part(scan: Scan, prep: Any, sel: np.ndarray | None, names: Sequence[str
     if sel is not None:
         prep = prep.subset(sel)
     X = compute_features(list(names), FeatureContext.from_prepared(prep))
+    if scan.artifact is None:
+        raise DatasetError("the scan has no artifact: targets need the nominal shape")
     y, used = errors_with_fit(prep.points, scan.artifact, fit_center)
     if scan.expected_error is not None:
         oracle = np.asarray(scan.expected_error, dtype=np.float64).reshape(-1, 3)[prep.index]

@@ -119,7 +119,8 @@ class ModelSet:
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = max(1, int(threads))
         opts.inter_op_num_threads = 1
-        members, covered = [], []
+        members: list[Any] = []
+        covered: list[int] = []
         for m in card["models"]:
             p = d / m["file"]
             if not p.is_file():

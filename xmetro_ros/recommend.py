@@ -365,7 +365,7 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
         else:
             pred = np.concatenate([np.asarray(model_set.predict_batch(X[i:i + step]), dtype=np.float64)
                                    for i in range(0, len(X), step)])
-            unc = predict_unc(X)
+            unc = predict_unc(X)  # type: ignore[assignment]  # None: no source of U (the scores treat U as 0)
         means, p95s, tots, uncs, u95s, e95s = _scores(pred, unc, cov, z)
         ood = ood_share(X, cov)
         for k, s in enumerate(cands):

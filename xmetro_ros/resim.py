@@ -97,6 +97,7 @@ class Region:
         if self._tree is not None and self.points is not None:
             lo, hi = self.points.min(axis=0) - self.tol_mm, self.points.max(axis=0) + self.tol_mm
         else:
+            assert self.centre is not None and self.radius_mm is not None  # a ball (checked at construction)
             lo, hi = self.centre - self.radius_mm, self.centre + self.radius_mm
         lo, hi = lo - MARGIN_MM, hi + MARGIN_MM
         return np.array([[a[0], b[1], c[2]] for a in (lo, hi) for b in (lo, hi) for c in (lo, hi)])
@@ -196,7 +197,7 @@ def _reference_points(truth: GroundTruth, region: Region) -> np.ndarray:
     return nominal[region.contains(nominal)]
 
 
-def _extent(truth: GroundTruth) -> dict[str, float]:
+def _extent(truth: GroundTruth) -> dict[str, Any]:
     return {} if truth.extent_mm is None else {"extent_mm": truth.extent_mm}
 
 
@@ -220,7 +221,12 @@ def resimulate(truth: GroundTruth, region: Region, settings: ScanSettings, pose:
     ref = _reference_points(truth, region) if reference is None else reference
     tol = cov_tol_mm if cov_tol_mm is not None else 1.5 / min(settings.lateral_density, settings.direction_density)
     start, win = _window(truth, region, settings, pose)
-    p95, mean, sys95, rand95, cov, npts = [], [], [], [], [], []
+    p95: list[float] = []
+    mean: list[float] = []
+    sys95: list[float] = []
+    rand95: list[float] = []
+    cov: list[float] = []
+    npts: list[int] = []
     for sd in seeds:
         try:
             scan = simulate_scan(truth.artifact, settings, scanner=truth.scanner, pose=start, effects=truth.effects,
@@ -228,19 +234,24 @@ def resimulate(truth: GroundTruth, region: Region, settings: ScanSettings, pose:
         except ValueError:  # nothing of the region is in view from this pose
             scan = None
         if scan is None:
-            p95.append(np.inf), mean.append(np.inf), sys95.append(np.inf), rand95.append(np.inf)
-            cov.append(0.0), npts.append(0)
+            for lst in (p95, mean, sys95, rand95):
+                lst.append(np.inf)
+            cov.append(0.0)
+            npts.append(0)
             continue
         pts = scan.points.reshape(-1, 3)
         ok = np.isfinite(pts).all(axis=1)
         meas = pts[ok]
+        assert scan.expected_error is not None  # simulated scans carry it
         exp = scan.expected_error.reshape(-1, 3)[ok]
         nominal = truth.artifact.project(meas)
         inr = region.contains(nominal)
         e = (nominal - meas)[inr]
         npts.append(int(inr.sum()))
         if len(e) == 0:
-            p95.append(np.inf), mean.append(np.inf), sys95.append(np.inf), rand95.append(np.inf), cov.append(0.0)
+            for lst in (p95, mean, sys95, rand95):
+                lst.append(np.inf)
+            cov.append(0.0)
             continue
         en = np.linalg.norm(e, axis=1)
         p95.append(float(np.percentile(en, 95)))

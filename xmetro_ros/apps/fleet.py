@@ -234,7 +234,7 @@ def predict_job(job: BagJob, model_dir: str | None = None, params: dict[str, Any
         os.replace(tmp_out, out)  # last: the .mcap under its final name marks the bag done
         with contextlib.suppress(OSError):
             tmp_out.parent.rmdir()  # when no other bag of this directory is under way
-        verdicts = [r["verdict_name"] for r in rows]
+        verdicts = [str(r["verdict_name"]) for r in rows]
         rec.update(status="damaged" if res.losses else "done", scans=len(rows), model_id=res.model_id,
                    verdicts={v: verdicts.count(v) for v in sorted(set(verdicts))},
                    losses=res.losses, notes=res.notes)

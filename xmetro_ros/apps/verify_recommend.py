@@ -80,7 +80,8 @@ def verify_regions(model_dir: Path | None = None, radius_mm: float = 4.0, n_regi
             "radius_mm": radius_mm, "seed": 7000 + i, "note": rec.note, "kept_current": rec.kept_current,
             "recommended_settings": s(rec.best.settings),
             "recommended_quaternion_xyzw": rec.best.quaternion.round(6).tolist(),
-            "predicted_p95_um": {"before": ver.before.predicted_p95_mm * um, "after": ver.after.predicted_p95_mm * um},
+            "predicted_p95_um": {k: None if v is None else v * um for k, v in
+                                 (("before", ver.before.predicted_p95_mm), ("after", ver.after.predicted_p95_mm))},
             "actual_p95_um": {"before": ver.before.p95_mm * um, "after": ver.after.p95_mm * um,
                               "best": ver.best.p95_mm * um, "after_spread": ver.after.p95_spread_mm * um},
             "actual_after_parts_um": {"systematic_p95": ver.after.sys_p95_mm * um,

@@ -49,6 +49,11 @@ def _mlp(sizes: Sequence[int], final_relu: bool = True) -> nn.Sequential:
 class PointNetReg(nn.Module):
     """Set-to-points regressor. forward: (B, n, F) raw features → (B, n, n_out) errors in mm."""
 
+    # registered buffers (normalisation), declared for the type checker
+    x_mean: torch.Tensor
+    x_std: torch.Tensor
+    y_scale: torch.Tensor
+
     def __init__(
         self,
         n_features: int,

@@ -37,7 +37,7 @@ SPLIT_DOC = {
 def load_data(profile: str = "quick", seed: int = 0, scans: list[Any] | None = None,
               source_manifest: dict | None = None, effects: dict | None = None,
               log: Callable[[str], None] = print, client: Any = None,
-              sources: list[Callable[[], list[Any]]] | None = None) -> tuple[Any, dict]:
+              sources: Sequence[Callable[[], list[Any]]] | None = None) -> tuple[Any, dict]:
     """Build the point table: from given ``scans`` (e.g. read from bags by ``xmetro train --data``, with their
     ``source_manifest``), or by simulating the profile's campaign with ``seed``. Returns (table, manifest).
 
@@ -106,7 +106,7 @@ def _draw_metrics(model: FittedModel, X, y, cid, split: Split) -> dict[int, dict
 
 
 def _oracle(y, oracle, split: Split) -> dict[str, dict]:
-    out = {}
+    out: dict[str, dict] = {}
     if oracle is None:
         return out
     for a, ax in enumerate(AXES):
@@ -317,14 +317,15 @@ def _shap_and_plots(metrics, point_models, out: Path, X, y, cid, split: Split, n
     net = "pointnet" if "pointnet" in point_models else ("pointnet_multi" if "pointnet_multi" in point_models else None)
     if net:
         ms = ModelSet.load(out / "models" / net)
-        Xs, S = [], []
+        Xl: list[np.ndarray] = []
+        Sl: list[np.ndarray] = []
         for c in pick:
             rows = test[cid[test] == c]
             r = explain(ms, X[rows], np.asarray(ms.card["background"], np.float32), n_permutations=2,
                         max_background=prof.shap_background)
-            Xs.append(X[rows])
-            S.append(r.shap)
-        Xs, S = np.concatenate(Xs), np.concatenate(S)
+            Xl.append(X[rows])
+            Sl.append(r.shap)
+        Xs, S = np.concatenate(Xl), np.concatenate(Sl)
         metrics["shap"][net] = _rank_and_plot(S, Xs, names, net, out)
     if "catboost" in point_models:
         import shap
@@ -353,7 +354,7 @@ def _map_cloud(pick: np.ndarray, clouds: list | None):
     """The cloud for the deviation maps: the first picked sphere (where the table says), else the first pick."""
     for c in pick:
         try:
-            if "sphere" in json.dumps(clouds[int(c)].get("artifact", "")).lower():
+            if clouds is not None and "sphere" in json.dumps(clouds[int(c)].get("artifact", "")).lower():
                 return c
         except (TypeError, IndexError, AttributeError):
             break

@@ -186,7 +186,7 @@ def _fit_pointnet(family, X, y2, groups, seed, prof, params, threads):
                 m.fit(X[tr], y2[tr], groups[tr])
                 errs.append(float(np.mean(np.abs(m.predict(X[va], groups[va]) - y2[va]))))
             scores[h] = float(np.mean(errs))
-        head = min(scores, key=scores.get)
+        head = min(scores, key=lambda k: scores[k])
         cv = scores[head]
     else:
         head, cv = None, None

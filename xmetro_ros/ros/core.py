@@ -129,8 +129,8 @@ class XmetroCore:
         with self._settings_lock:
             # The same message can arrive twice (the node's transient-local and volatile subscriptions both match
             # a transient-local publisher): one entry per (frame, stamp), the latest received wins.
-            for i, e in enumerate(self._settings):
-                if e.stamp_ns == entry.stamp_ns and e.frame_id == entry.frame_id:
+            for i, old in enumerate(self._settings):
+                if old.stamp_ns == entry.stamp_ns and old.frame_id == entry.frame_id:
                     del self._settings[i]
                     break
             self._settings.append(entry)

@@ -31,7 +31,7 @@ import os
 import threading
 import time
 from collections import OrderedDict, deque
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
@@ -86,7 +86,14 @@ def output_qos(depth: int = 10) -> QoSProfile:
                       durability=DurabilityPolicy.VOLATILE)
 
 
-class XmetroWiring:
+# The wiring is a mixin of rclpy Node subclasses (plain and lifecycle): type-check it as a Node.
+if TYPE_CHECKING:
+    _NodeBase = Node
+else:
+    _NodeBase = object
+
+
+class XmetroWiring(_NodeBase):
     """The node's wiring (parameters, publishers, subscriptions, services, worker), shared by :class:`XmetroNode`
     and ``lifecycle_node.XmetroLifecycleNode``. Mixed into an ``rclpy.node.Node`` subclass; the steps are split so
     that the lifecycle node can run them from its transitions: :meth:`_init_wiring` (parameters, in ``__init__``),
@@ -116,7 +123,7 @@ class XmetroWiring:
         self._last_seq: OrderedDict[bytes, int] = OrderedDict()
         self._inputs: list[Any] = []
         self._outputs: list[Any] = []
-        self.timer_diag = None
+        self.timer_diag: Any = None
 
     def _load_core(self) -> XmetroCore:
         """Read and check the parameters, load the model set and the scanner (XmetroCore)."""
@@ -262,8 +269,11 @@ class XmetroWiring:
         # DDS sample-lost events (rmw_fastrtps reports none for a reader's keep-last history overflow: the sequence
         # gaps below count those); shown apart on /diagnostics.
         return SubscriptionEventCallbacks(
-            message_lost=lambda ev: self.diag.on_lost(int(ev.total_count_change), dds_event=True)
-            if self.diag is not None else None)
+            message_lost=self._on_message_lost)
+
+    def _on_message_lost(self, ev: Any) -> None:
+        if self.diag is not None:
+            self.diag.on_lost(int(ev.total_count_change), dds_event=True)
 
     def _count_gaps(self, info: Any) -> None:
         """Scans lost before the callback: gaps in the publisher's sequence numbers since its last received scan.
@@ -277,7 +287,7 @@ class XmetroWiring:
         if seq is None or not key:
             return
         last = self._last_seq.get(key)
-        if last is not None and seq > last + 1:
+        if last is not None and seq > last + 1 and self.diag is not None:
             self.diag.on_lost(seq - last - 1)
         if last is None or seq > last:
             self._last_seq[key] = int(seq)
@@ -298,7 +308,7 @@ class XmetroWiring:
                 return
             if len(self._queue) >= self._qmax:
                 dropped = self._queue.popleft()
-                self.diag.on_dropped()
+                diag.on_dropped()
             self._queue.append((msg, t0))
             self._update_queue_diag()
             self._cv.notify()
@@ -404,7 +414,8 @@ class XmetroWiring:
                           f"> max_processing_time {bound:g} s")
                 if now - busy[0] > 2 * bound and not self._abandoned and not self._stop:
                     abandoned = busy
-                    self._abandoned.append(self._worker)
+                    if self._worker is not None:
+                        self._abandoned.append(self._worker)
                     self._busy = None
                     self._worker = self._start_worker()
                     self._update_queue_diag()
