@@ -8,7 +8,9 @@ Derived (when the input gives them): ``range`` (mm to the laser source / scanner
 line), ``scan_position`` (mm along the scan direction), ``x``/``y``/``z`` (mm), ``curvature`` (surface variation
 of the 16 nearest neighbours, the point left out), ``density`` (points per mm², 8th neighbour),
 ``profile_identity`` and ``cloud_identity``. A derived candidate duplicating a field is dropped; candidates
-equivalent to a model feature are flagged ``in_model`` (reported as controls, never selected).
+equivalent to a model feature are flagged ``in_model`` (reported as controls, never selected). When an artifact
+position was fitted, position-like candidates (``POSITION_LIKE``) are flagged ``confounded`` (traced, reported,
+never selected). ``SPECTRAL_NAMES`` also get the trace's spectral test.
 """
 
 from __future__ import annotations

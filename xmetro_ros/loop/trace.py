@@ -4,8 +4,13 @@ permutation test with Holm multiple-testing control.
 Method (per candidate variable ``x``, residual ``R`` (N, 3) mm = actual − predicted error):
 
 - Regressor: a shrunken bin-mean (piecewise-constant) fit of ``R`` on ``x``: quantile bins of ``x`` (continuous
-  candidates) or one bin per identity value (identity candidates, e.g. a profile or pass id). Piecewise-constant
-  fits catch non-linear and non-monotonic effects; shrinkage (``n / (n + shrink)``) keeps sparse bins near zero.
+  candidates, at every resolution of ``bin_levels``: 16 bins follow a trend, 64-192 an oscillation of many periods;
+  the best resolution is kept and the null pays for the choice) or one bin per identity value (identity
+  candidates, e.g. a profile or pass id). Piecewise-constant fits catch non-linear and non-monotonic effects;
+  shrinkage (``n / (n + shrink)``) keeps sparse bins near zero.
+- Spectral test (``spectral_test``, for time / position candidates): phase-free per-cloud periodogram of the
+  detrended residual, peak frequency chosen on the other clouds and read on the held-out ones; reports the peak
+  frequency, amplitude and phase coherence across clouds.
 - Held-out score: K-fold cross-validation. Continuous candidates: folds hold out whole groups (clouds or
   profiles). Identity candidates (an identity's effect cannot transfer to an unseen identity): held out by interleaved
   blocks of points inside each group (fit on some blocks of a profile, score on the others).
@@ -14,7 +19,8 @@ Method (per candidate variable ``x``, residual ``R`` (N, 3) mm = actual − pred
 - Significance: the same score with the residual rows permuted inside each training fold (``n_perm`` times; the
   held-out residual stays untouched), p = (1 + #{null ≥ observed}) / (1 + n_perm); when no permutation reaches the
   observed score, p is extrapolated from a normal fit to the null scores (capped at 1 / (1 + n_perm)), so that few
-  permutations suffice; Holm's step-down correction over all candidates controls the family-wise error rate.
+  permutations suffice; Holm's step-down correction over every test made (all candidates' learner tests and the
+  spectral tests) controls the family-wise error rate.
 - A candidate is *significant* when its Holm-adjusted p ≤ ``alpha`` **and** its score ≥ ``min_effect`` (a
   practical-size floor: a tiny but "significant" share of a huge cloud is not an effect worth a feature).
   The point-wise null cannot see cloud-level coincidences (with few clouds, a candidate whose range differs between
