@@ -22,6 +22,7 @@ from xmetro_ros.scan import Scan
 from xmetro_ros.scanner import ScanSettings
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+VIB_PERIOD_S = 0.2 / 6  # a scan of 40 profiles at 200 profiles/s lasts 0.2 s: 6 periods per scan
 
 
 def sim_scan(seed: int, effect: str | None = None, mag: float = 0.0, H: int = 40, W: int = 60,
@@ -62,6 +63,10 @@ def sim_scan(seed: int, effect: str | None = None, mag: float = 0.0, H: int = 40
             extra += m * np.sin(u / 6.0)
         elif eff == "xscale":  # a ripple of the cell's x axis (e.g. a worn ball screw), period 2π·3 mm in x
             extra += m * np.sin(P[:, 0] / 3.0)
+        elif eff == "vibration":  # head vibration locked to the scan start: 6 periods per scan (200 profiles/s)
+            extra += m * np.sin(2 * np.pi * tt / VIB_PERIOD_S)
+        elif eff == "vibration_free":  # the same vibration with a random phase per scan (not locked to t)
+            extra += m * np.sin(2 * np.pi * tt / VIB_PERIOD_S + rng.uniform(0, 2 * np.pi))
     P = P + D * (base + extra + rng.normal(0, noise, len(P)))[:, None]
     fields = {"intensity": inten, "line": line, "t": tt, "u": u, "pass": passid}
     pose = HeadPose(np.array([hx, ys[0], 90.0]), np.diag([sgn, sgn, 1.0]))
@@ -89,19 +94,70 @@ def _loop(effect, mag, seed, n=8, given=None, **kw):
     ("drift", 0.02, 0, "field_t"),
     ("line", 0.02, 0, "field_u"),
     ("intensity", 0.03, 1, "field_intensity"),
-    ("pass", 0.02, 0, "field_pass"),
-    ("pass", 0.01, 2, "field_pass"),
     ("xscale", 0.02, 1, "x"),  # no field carries it: only the derived coordinate candidate can
 ])
 def test_loop_names_injected_effect_and_cuts_error(clean_model, effect, mag, seed, expected):
     _, res = _loop(effect, mag, seed, given=clean_model)
     rep = res.report
+    assert rep["schema"] == "xmetro.loop.report/2"
     assert rep["selected"] is not None and rep["selected"]["name"] == expected, rep["candidates"][:3]
+    assert rep["selected"]["finding"] == "predictive" and rep["predictive"]["added"] == [expected]
     assert rep["candidates"][0]["significant"]
     before = np.mean([rep["before"][a]["mae"] for a in "xyz"])
     after = np.mean([rep["after"][a]["mae"] for a in "xyz"])
     assert after < 0.75 * before, (before, after)
     assert rep["after"]["normal"]["p95"] < rep["before"]["normal"]["p95"]
+    assert rep["predictive"]["after"] == rep["after"] and rep["diagnostic"]["findings"] == []
+
+
+@pytest.mark.parametrize("mag,seed", [(0.02, 0), (0.01, 2)])
+def test_per_pass_offset_is_diagnostic_not_live(clean_model, mag, seed):
+    """A per-pass offset needs each scan's own ground truth: it is reported as a diagnostic finding (size per pass
+    with its bootstrap uncertainty, what would fix it); the live (predictive) figures do not move."""
+    _, res = _loop("pass", mag, seed, given=clean_model)
+    rep = res.report
+    assert rep["selected"] is None and rep["predictive"]["added"] == []
+    assert rep["after"] == rep["before"]  # nothing a live node could use
+    (f,) = rep["diagnostic"]["findings"]
+    assert f["variable"] == "field_pass" and f["kind"] == "offset" and f["needs_ground_truth"]
+    assert "pass" in f["structure"] and "register the passes" in f["fix"]
+    tab = f["offsets"]
+    assert tab["n_identities"] == 8 * 4 and len(tab["per_identity"]) == 32
+    assert all(len(r["se_um"]) == 3 and "pass=" in r["identity"] for r in tab["per_identity"])
+    # the injected per-pass offsets are N(0, mag) along the ray: their fitted size is of that order
+    assert 0.3 * mag * 1e3 < tab["median_um"] < 3 * mag * 1e3, tab["median_um"]
+    assert tab["median_se_um"] < 0.5 * tab["median_um"]
+    wg = rep["diagnostic"]["eval_with_offsets"]
+    before = np.mean([rep["before"][a]["mae"] for a in "xyz"])
+    assert np.mean([wg[a]["mae"] for a in "xyz"]) < 0.75 * before
+
+
+def test_vibration_over_t_is_named_and_mostly_removed(clean_model):
+    """A head vibration over the profile time t, 6 periods per scan, amplitude 2× the noise (8 µm), locked to the
+    scan start: named ``field_t`` (the spectral test gives its frequency: 30 Hz), added as a feature, and the added
+    feature removes at least half of its excess error on the held-out clouds (excess: against the same scans
+    without the vibration)."""
+    rep = _loop("vibration", 0.008, 0, given=clean_model)[1].report
+    clean = _loop(None, 0.0, 0, given=clean_model)[1].report
+    assert rep["selected"]["name"] == "field_t", rep["candidates"][:3]
+    assert clean["selected"] is None
+    sp = next(c for c in rep["candidates"] if c["name"] == "field_t")["spectral"]
+    assert sp["significant"] and abs(sp["peak_frequency"] - 1 / VIB_PERIOD_S) < 1.0 and sp["phase_coherence"] > 0.9
+    for k in ("mae", "rmse"):
+        b, a, c = (r["normal"][k] for r in (rep["before"], rep["after"], clean["before"]))
+        assert b > 1.2 * c  # the vibration is there
+        assert (b - a) >= 0.5 * (b - c), (k, b, a, c)
+
+
+def test_vibration_with_free_phase_is_a_diagnostic_oscillation(clean_model):
+    """The same vibration with a random phase per scan: t cannot predict it (no live improvement), but the
+    phase-free spectral test names it, with its frequency, as a diagnostic oscillation."""
+    rep = _loop("vibration_free", 0.008, 0, given=clean_model)[1].report
+    assert rep["selected"] is None or rep["selected"]["name"] != "field_t"
+    sp = next(c for c in rep["candidates"] if c["name"] == "field_t")["spectral"]
+    assert sp["significant"] and abs(sp["peak_frequency"] - 1 / VIB_PERIOD_S) < 1.0 and sp["phase_coherence"] < 0.9
+    osc = [f for f in rep["diagnostic"]["findings"] if f["kind"] == "oscillation"]
+    assert osc and osc[0]["variable"] == "field_t"
 
 
 def test_loop_iterates_over_two_effects_then_stops(clean_model):
@@ -120,17 +176,23 @@ def test_loop_iterates_over_two_effects_then_stops(clean_model):
 
 
 def test_identity_candidate_is_tried_when_continuous_ones_fail(clean_model):
-    """A per-pass offset together with a reflectance bias: the continuous candidates cannot carry the per-pass
-    offsets to unseen scans (they fail the trace-part check), which must not use up the tries of the identity
-    candidate; once the offsets are in, the reflectance bias is still found in a later iteration."""
+    """A per-pass offset together with a reflectance bias: both are found — the reflectance bias as a predictive
+    feature (live figures improve), the per-pass offset as a diagnostic finding (failing continuous candidates must
+    not use up the tries of the identity candidate)."""
     scans = [sim_scan(300 + k, "intensity", 0.03, also={"pass": 0.02}) for k in range(8)]
     res = run_loop(from_scans(scans), LoopConfig(seed=3, **{**CFG, "max_iter": 4}), given=clean_model)
-    its = res.report["iterations"]
-    assert its[0]["selected"]["name"] == "field_pass" and its[0]["selected"]["correction"] == "offset"
-    assert "field_intensity" in res.added_features
+    sel = {it["selected"]["name"]: it["selected"] for it in res.report["iterations"] if it["selected"]}
+    assert sel["field_pass"]["correction"] == "offset" and sel["field_pass"]["finding"] == "diagnostic"
+    assert "field_intensity" in res.added_features and res.report["selected"]["name"] == "field_intensity"
+    assert [f["variable"] for f in res.report["diagnostic"]["findings"]] == ["field_pass"]
     before = np.mean([res.report["before"][a]["mae"] for a in "xyz"])
-    after = np.mean([res.report["after"][a]["mae"] for a in "xyz"])
-    assert after < 0.5 * before, (before, after)
+    # live: the intensity feature only. Its live effect is not asserted: the per-pass offsets (±20 µm) dominate what
+    # a live node is left with, and the corrector learnt on 3 training scans carrying them does not reliably help
+    # the eval scans here (docs/closed-loop.md, limits); the report keeps the live figures apart.
+    assert res.report["predictive"]["after"] == res.report["after"]
+    assert res.report["predictive"]["steps"][0]["variable"] == "field_intensity"
+    wg = res.report["diagnostic"]["eval_with_offsets"]  # with the per-pass offsets (needs the ground truth)
+    assert np.mean([wg[a]["mae"] for a in "xyz"]) < 0.5 * before
 
 
 def test_loop_reports_none_without_effect(clean_model, tmp_path):
@@ -139,6 +201,11 @@ def test_loop_reports_none_without_effect(clean_model, tmp_path):
     _, res = _loop(None, 0.0, 3, given=clean_model)
     assert res.report["selected"] is None
     assert res.report["iterations"][0]["selected"] is None
+    assert res.report["diagnostic"]["findings"] == [] and res.report["predictive"]["added"] == []
+    # the new scorers ran (multi-resolution bins, spectral test over t and positions) and stayed silent
+    spec = [c for c in res.report["candidates"] if c["spectral"]]
+    assert {"field_t", "field_u", "scan_position"} <= {c["name"] for c in spec}
+    assert not any(c["significant"] or c["spectral"]["significant"] for c in spec)
     path = write_report(res, tmp_path)
     import json
 
@@ -229,9 +296,36 @@ def test_cli_end_to_end_and_errors(tmp_path, capsys):
     rc = _cli([str(bag), "--out", str(out), "--n-perm", "29", "--iterations", "60", "--max-iter", "1"])
     assert rc == 0, capsys.readouterr().err
     rep = json.loads((out / "report.json").read_text())
-    assert rep["selected"]["name"] == "field_pass" and rep["selected"]["correction"] == "offset"
-    assert (out / "report.md").read_text().count("![") == len(rep["plots"]) == 1
+    assert rep["selected"] is None and rep["diagnostic"]["findings"][0]["variable"] == "field_pass"
+    md = (out / "report.md").read_text()
+    assert "## Predictive" in md and "## Diagnostic" in md and "field_pass" in md.split("## Diagnostic")[1]
+    assert md.count("![") == len(rep["plots"]) == 1
     assert _cli([str(bag), "--out", str(out), "--artifact", "cube:side=3"]) == 2
     assert "unknown artifact kind" in capsys.readouterr().err
     assert _cli([str(bag), "--out", str(out), "--candidates", "field_nope"]) == 2
     assert "field_nope" in capsys.readouterr().err
+
+
+def test_spectral_test_finds_frequency_and_phase_coherence():
+    """The spectral test alone on synthetic residuals (6 clouds of 800 points, noise σ = 1): a sinusoid of amplitude
+    1 at 5 cycles per unit is found at its frequency with coherence ≈ 1 when its phase is locked to x, ≈ low when
+    the phase is random per cloud; pure noise stays at the null (score ≈ 0, p not small)."""
+    from xmetro_ros.loop.trace import TraceConfig, cv_folds, spectral_test
+
+    rng = np.random.default_rng(0)
+    n, G = 800, 6
+    x = np.concatenate([np.sort(rng.uniform(0, 1.2, n)) + rng.uniform(0, 0.5) for _ in range(G)])
+    g = np.repeat(np.arange(G), n)
+    noise = rng.normal(0, 1, (n * G, 3))
+    cfg = TraceConfig(n_perm=49)
+    folds = cv_folds(g, np.arange(n * G), cfg.n_folds, by="group", block_size=24, seed=0)
+    phases = {"locked": np.zeros(G), "free": rng.uniform(0, 2 * np.pi, G)}
+    for kind, ph in phases.items():
+        R = noise.copy()
+        R[:, 2] += np.sin(2 * np.pi * 5.0 * x + ph[g])
+        out = spectral_test(R, x, g, folds, cfg, np.random.default_rng(1))
+        assert out is not None and abs(out["peak_frequency"] - 5.0) < 0.3, out
+        assert out["score"] > 0.1 and out["p_value"] < 0.02 and abs(out["amplitude_mm"] - 1.0) < 0.3
+        assert (out["phase_coherence"] > 0.95) if kind == "locked" else (out["phase_coherence"] < 0.8), out
+    out = spectral_test(noise, x, g, folds, cfg, np.random.default_rng(1))
+    assert abs(out["score"]) < 0.01 and out["p_value"] > 0.05, out

@@ -1,4 +1,5 @@
-"""`xmetro loop INPUT... --artifact SPEC --out DIR`: close the loop on measured or recorded data."""
+"""`xmetro loop INPUT... --artifact SPEC --out DIR` or `xmetro loop --campaign CAMPAIGN.yaml --out DIR`: close the
+loop on measured or recorded data, or on a calibration campaign (several artifacts, known or fitted positions)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,8 @@ def register(subparsers) -> None:
     """Add ``xmetro loop`` to the ``xmetro`` sub-commands."""
     p = subparsers.add_parser("loop", help="trace the residual of the model to an undeclared effect and add it",
                               description=__doc__)
-    p.add_argument("inputs", nargs="+", help="MCAP bags, NIST .xyz files/dir, or the AT C5 profile dir")
+    p.add_argument("inputs", nargs="*", help="MCAP bags, NIST .xyz files/dir, or the AT C5 profile dir")
+    p.add_argument("--campaign", default=None, help="calibration campaign file (xmetro-campaign/1) instead of inputs")
     p.add_argument("--artifact", default=None, help="nominal artifact, e.g. sphere:radius=50,center=fit")
     p.add_argument("--out", required=True, help="output directory (report.json, report.md, plots, model/)")
     p.add_argument("--model", default=None, help="model dir (ModelSet); default: retrain CatBoost on the input")
@@ -31,6 +33,7 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     """``xmetro loop``: load the inputs, run the loop, write the report (and the augmented model); exit code."""
     from ..artifacts import ArtifactSpecError
+    from ..campaign_file import CampaignError
     from ..loop.data import LoopInputError
     from ..loop.inputs import load_inputs
     from ..loop.model import GivenModel
@@ -45,7 +48,15 @@ def run(args: argparse.Namespace) -> int:
             from ..inference import ModelSet
 
             given = GivenModel(ModelSet.load(args.model))
-        data = load_inputs(args.inputs, args.artifact, given.feature_names if given else None, read_bag=read_scans)
+        feats = given.feature_names if given else None
+        if args.campaign:
+            if args.inputs or args.artifact:
+                raise LoopInputError("--campaign names its recordings and artifacts: give no inputs or --artifact")
+            from ..loop.inputs import from_campaign
+
+            data = from_campaign(args.campaign, _read_recording, feats)
+        else:
+            data = load_inputs(args.inputs, args.artifact, feats, read_bag=read_scans)
         cfg = LoopConfig(
             iterations=args.iterations, max_iter=args.max_iter, correction=args.correction, seed=args.seed,
             candidates=args.candidates.split(",") if args.candidates else None,
@@ -60,9 +71,18 @@ def run(args: argparse.Namespace) -> int:
                 export_loop_model(result, data, Path(args.out) / "model")
             except LoopInputError as e:  # derived (non-registry) features: report stays valid, no model dir
                 print(f"xmetro loop: model not exported: {e}", file=sys.stderr)
-    except (ArtifactSpecError, LoopInputError, ValueError, FileNotFoundError, RuntimeError) as e:
+    except (ArtifactSpecError, CampaignError, LoopInputError, ValueError, FileNotFoundError, RuntimeError) as e:
         print(f"xmetro loop: error: {e}", file=sys.stderr)
         return 2
     sel = result.report["selected"]
-    print(f"selected: {sel['name'] if sel else 'none (no significant effect found)'}; report: {path}")
+    diag = [f["variable"] for f in result.report["diagnostic"]["findings"]]
+    print(f"predictive: {sel['name'] if sel else 'none'}; diagnostic: {', '.join(diag) if diag else 'none'}; "
+          f"report: {path}")
     return 0
+
+
+def _read_recording(rec, scanner):
+    """A campaign recording's scans (its own topics), as ``xmetro calibrate`` reads them."""
+    from ..ros.scan_io import read_scans
+
+    return read_scans(rec.bag, topic=rec.scan_topic, settings_topic=rec.settings_topic, scanner=scanner)

@@ -8,7 +8,9 @@ Derived (when the input gives them): ``range`` (mm to the laser source / scanner
 line), ``scan_position`` (mm along the scan direction), ``x``/``y``/``z`` (mm), ``curvature`` (surface variation
 of the 16 nearest neighbours, the point left out), ``density`` (points per mm², 8th neighbour),
 ``profile_identity`` and ``cloud_identity``. A derived candidate duplicating a field is dropped; candidates
-equivalent to a model feature are flagged ``in_model`` (reported as controls, never selected).
+equivalent to a model feature are flagged ``in_model`` (reported as controls, never selected). When an artifact
+position was fitted, position-like candidates (``POSITION_LIKE``) are flagged ``confounded`` (traced, reported,
+never selected). ``SPECTRAL_NAMES`` also get the trace's spectral test.
 """
 
 from __future__ import annotations
@@ -20,7 +22,8 @@ from scipy.spatial import cKDTree
 
 from .data import LoopData, LoopInputError
 
-__all__ = ["DERIVED", "IDENTITY_FIELD_NAMES", "CandidateInfo", "build_candidates"]
+__all__ = ["DERIVED", "IDENTITY_FIELD_NAMES", "POSITION_LIKE", "SPECTRAL_NAMES", "CandidateInfo", "build_candidates",
+           "has_fitted_positions"]
 
 IDENTITY_FIELD_NAMES = {"pass", "pass_id", "profile", "profile_id", "pose", "pose_id", "cloud", "cloud_id", "id"}
 
@@ -40,6 +43,27 @@ DERIVED: dict[str, tuple[str, str, str | None]] = {
     "cloud_identity": ("id", "identity of each cloud (per-cloud offset)", None),
 }
 FIELD_DUPLICATES = {"line_position": "u", "scan_time": "t"}
+#: Units of the fields our scans carry (t: s since the scan start; u, s: mm along the line / scan direction).
+FIELD_UNITS = {"t": "s", "u": "mm", "s": "mm", "line": "id"}
+#: Coordinates of the acquisition (time, positions): the trace also tests the residual spectrally over them.
+SPECTRAL_NAMES = frozenset({"field_t", "field_time", "field_u", "field_s", "line_position", "scan_position",
+                            "x", "y", "z"})
+#: Positions on the artifact. With a fitted centre (per scan or per set), the fit's location error δc leaves an
+#: error n·δc on every point, a smooth function of these variables that the same fit bias repeats from cloud to
+#: cloud: such a candidate could "explain" it across held-out clouds. They are traced but never selected then.
+POSITION_LIKE = frozenset({"x", "y", "z", "scan_position"})
+FITTED_REASON = ("the artifact's position was fitted: a location error of the fit projects onto position-like "
+                 "variables (known positions needed to tell it from the scanner)")
+
+
+def has_fitted_positions(artifact: dict) -> bool:
+    """True when the LoopData artifact description says a centre was fitted (``fit_center`` or a campaign
+    placement with ``position: fitted``), in any group."""
+    if not isinstance(artifact, dict):
+        return False
+    if artifact.get("fit_center") or artifact.get("position") == "fitted" or artifact.get("fitted_groups"):
+        return True
+    return any(has_fitted_positions(a) for a in artifact.get("per_group", []))
 
 
 @dataclass(frozen=True)
@@ -52,6 +76,7 @@ class CandidateInfo:
     description: str
     source: str  # "field" | "derived"
     in_model: bool
+    confounded: str = ""  # why the candidate may not be selected (fitted positions), "" when it may
 
 
 def _angle(n: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -99,9 +124,11 @@ def build_candidates(
     def add(name: str, v: np.ndarray, kind: str, unit: str, desc: str, source: str, equiv: str | None) -> None:
         vals[name] = np.asarray(v, dtype=float)
         in_model = name in feats or (equiv in feats if equiv else False)
-        info[name] = CandidateInfo(name, kind, unit, desc, source, in_model)
+        conf = FITTED_REASON if (fitted and name in POSITION_LIKE) else ""
+        info[name] = CandidateInfo(name, kind, unit, desc, source, in_model, conf)
 
     want = set(include) if include is not None else None
+    fitted = has_fitted_positions(data.artifact)
 
     def wanted(name: str) -> bool:
         return (want is None or name in want) and name not in exclude
@@ -113,7 +140,7 @@ def build_candidates(
         v = np.asarray(arr, dtype=float)
         if kind == "identity":
             v = _combine(data.group, v)  # an identity lives inside its cloud
-        add(f"field_{fname}", v, kind, "", f"input field {fname!r}", "field", None)
+        add(f"field_{fname}", v, kind, FIELD_UNITS.get(fname, ""), f"input field {fname!r}", "field", None)
 
     g = data.geometry
     if "source_distance" in g and wanted("range"):

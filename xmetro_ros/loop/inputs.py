@@ -20,7 +20,7 @@ from ..geometry import unit, vec3
 from ..scan import Scan
 from .data import LoopData, LoopInputError
 
-__all__ = ["MEASURED_FEATURES", "detect_kind", "from_atc5", "from_nist", "from_scans", "load_inputs"]
+__all__ = ["MEASURED_FEATURES", "detect_kind", "from_atc5", "from_campaign", "from_nist", "from_scans", "load_inputs"]
 
 # Study features that need no scan settings (measured sets do not declare them).
 MEASURED_FEATURES = ["N_x", "N_y", "N_z", "Inc", "ViewAng", "R_y", "ang"]
@@ -45,8 +45,10 @@ def _nominal_normals(points: np.ndarray, art: Artifact) -> np.ndarray:
 def from_scans(
     scans: list[Scan], artifact: Artifact | None = None, fit_center: bool = False,
     feature_names: list[str] | None = None, preprocess_cfg=None, names: list[str] | None = None,
+    scanner=None,
 ) -> LoopData:
-    """Table of organized / unorganized scans (each one group). ``artifact`` None → each scan's own artifact."""
+    """Table of organized / unorganized scans (each one group). ``artifact`` None → each scan's own artifact.
+    ``scanner``: the scanner model whose geometry the features use (None: the packaged one)."""
     from ..features import STUDY_FEATURES, FeatureContext, compute_features
     from ..preprocess import prepare_scan
 
@@ -58,7 +60,7 @@ def from_scans(
         art = artifact or scan.artifact
         if art is None:
             raise LoopInputError(f"scan {i} has no nominal artifact: give one with --artifact")
-        prep = prepare_scan(scan, preprocess_cfg)
+        prep = prepare_scan(scan, preprocess_cfg, scanner=scanner)
         E, art_used = _errors(prep.points, art, fit_center)
         ctx = FeatureContext.from_prepared(prep)
         X = compute_features(feats, ctx)
@@ -74,6 +76,37 @@ def from_scans(
             artifact={"nominal": art.to_dict(), "fit_center": fit_center},
         ))
     return LoopData.concat(parts)
+
+
+def from_campaign(path: str | Path, read_bag: Callable[..., list[Scan]],
+                  feature_names: list[str] | None = None) -> LoopData:
+    """A calibration campaign (``campaign_file``, several artifacts, known or fitted positions) → LoopData: the
+    campaign is assembled and checked by ``campaign_data.assemble`` (one measurement per sphere and scan, the
+    artifact placed at its known centre or fitted with its certified size), each measurement is one group, and the
+    features use the campaign scanner's geometry. ``read_bag(recording, scanner)`` reads a recording's scans
+    (``ros.scan_io.read_scans`` with its topics; injected so that this core module needs no ROS). Groups with a
+    fitted position are marked (``artifact.per_group[i].position == "fitted"``): the loop then never selects a
+    position-like candidate (``candidates.POSITION_LIKE``). Raises CampaignError naming the scan and the cause."""
+    from ..campaign_data import assemble
+    from ..campaign_file import load_campaign
+
+    camp = load_campaign(path)
+    cdata = assemble(camp, lambda rec: read_bag(rec, camp.scanner))
+    parts = []
+    for it in cdata.scans:
+        part = from_scans([it.scan], None, False, feature_names=feature_names, names=[it.label],
+                          scanner=cdata.scanner)
+        art = it.scan.artifact
+        part.artifact = {"nominal": art.to_dict() if art is not None else None, "artifact_id": it.placement.artifact,
+                         "position": "fitted" if it.placement.fitted else "known",
+                         "position_source": it.placement.source, "recording": it.recording, "scan": it.index}
+        part.source = "campaign"
+        parts.append(part)
+    data = LoopData.concat(parts)
+    data.artifact = {"campaign": camp.path.name, "sha256": camp.sha256, "scanner": camp.scanner_id,
+                     "fitted_groups": [i for i, p in enumerate(parts) if p.artifact["position"] == "fitted"],
+                     "per_group": [p.artifact for p in parts]}
+    return data
 
 
 def _measured_features(points: np.ndarray, L: np.ndarray, V: np.ndarray, standoff: np.ndarray,

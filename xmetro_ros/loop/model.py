@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["LOOP_FAMILIES", "AxisModel", "GivenModel", "fit_family"]
+__all__ = ["LOOP_FAMILIES", "AxisModel", "GivenModel", "NormalCorrector", "fit_family", "fit_normal_corrector"]
 
 LOOP_FAMILIES = ("catboost",)
 
@@ -64,3 +64,33 @@ class GivenModel:
 
     def predict(self, X: np.ndarray) -> np.ndarray:
         return np.asarray(self.model_set.predict(np.asarray(X, dtype=np.float32)), dtype=float)
+
+
+@dataclass
+class NormalCorrector:
+    """A residual corrector of a given model along the nominal normal: one regressor of the normal residual (mm)
+    on the added variables; its correction is (predicted normal residual) × n. Sphere and cylinder errors lie along
+    the normal, so one scalar target carries them; per axis, the same variable would have to be learnt with the
+    normal's sign for every head orientation, from the few training clouds."""
+
+    model: Any
+    feature_names: list[str]
+
+    def predict(self, X: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        rn = self.model.predict(np.asarray(X, dtype=np.float32)).reshape(-1)
+        return rn[:, None] * np.asarray(normals, dtype=float)
+
+
+def fit_normal_corrector(
+    family: str, X: np.ndarray, normal_residual: np.ndarray, feature_names: list[str], *, seed: int = 0,
+    iterations: int = 300, depth: int = 6, learning_rate: float = 0.1, threads: int = 2,
+) -> NormalCorrector:
+    """Fit ``family`` (LEARN's ``fit_model``, fixed hyper-parameters) of the normal residual (mm) on X (M, F)."""
+    from ..learn.train import fit_model
+
+    if family not in LOOP_FAMILIES:
+        raise ValueError(f"loop model family {family!r} is not supported; choose one of {LOOP_FAMILIES}")
+    params = {"iterations": iterations, "depth": depth, "learning_rate": learning_rate}
+    m = fit_model(family, np.asarray(X, dtype=np.float32), np.asarray(normal_residual, dtype=float), seed=seed,
+                  axes=(0,), params=params, threads=threads)
+    return NormalCorrector(m, list(feature_names))

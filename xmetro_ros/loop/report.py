@@ -1,5 +1,7 @@
-"""Write ``DIR/report.json`` (schema ``xmetro.loop.report/1``, see docs/closed-loop.md), ``DIR/report.md`` and the
-plots of the normal residual (mm) against each traced variable, before and after its correction (eval set)."""
+"""Write ``DIR/report.json`` (schema ``xmetro.loop.report/2``, see docs/closed-loop.md), ``DIR/report.md`` and the
+plots of the normal residual (mm) against each traced variable, before and after its correction (eval set).
+The markdown shows *predictive* findings (features a live node computes; live before / after) apart from
+*diagnostic* ones (offsets and oscillations that need the scan's ground truth)."""
 
 from __future__ import annotations
 
@@ -70,19 +72,77 @@ def write_report(result: LoopResult, out_dir: str | Path) -> Path:
              + ", ".join(f"{k} {len(v['groups'])} ({v['n_points']} pts)" for k, v in rep["roles"].items()), "",
              f"Model: {rep['model']['kind']} {rep['model']['family']} on {', '.join(rep['model']['features'])}", "",
              "## Ground truth (eval part)", "", "```", json.dumps(rep["ground_truth"]["eval"], indent=1), "```", "",
-             "## Candidates (iteration 1)", "", "| rank | name | kind | score | p | p (Holm) | significant |",
-             "|---|---|---|---|---|---|---|"]
+             "## Candidates (iteration 1)", "", "| rank | name | kind | score | p | p (Holm) | spectral (score @ peak "
+             "freq, Holm p) | significant |", "|---|---|---|---|---|---|---|---|"]
     for i, c in enumerate(rep["candidates"], 1):
-        flag = ("yes" if c["significant"] else "no") + (" (in model)" if c["in_model"] else "")
+        flag = ("yes (" + ", ".join(c.get("significant_by", [])) + ")" if c["significant"] else "no") + (
+            " (in model)" if c["in_model"] else "") + (" (barred: fitted positions)" if c.get("confounded") else "")
+        sp = c.get("spectral")
+        spec = (f"{sp['score']:.3f} @ {sp['peak_frequency']:.4g}, p {sp['p_holm']:.2g}" if sp else "–")
         lines.append(f"| {i} | {c['name']} | {c['kind']} | {c['score']:.4f} | {c['p_value']:.2g} | "
-                     f"{c['p_holm']:.2g} | {flag} |")
+                     f"{c['p_holm']:.2g} | {spec} | {flag} |")
+    lines += ["", "## Predictive findings (a live node can use them)", ""]
+    pr = rep.get("predictive", {})
+    if pr.get("added"):
+        lines += ["| iteration | added feature | trace score | spectral (peak, coherence) | trace gain | eval MAE "
+                  "normal µm after |", "|---|---|---|---|---|---|"]
+        for st in pr["steps"]:
+            sp = st.get("spectral") or {}
+            spec = (f"{sp['score']:.3f} ({sp['peak_frequency']:.4g} /unit, {sp['phase_coherence']:.2f})"
+                    if sp else "–")
+            lines.append(f"| {st['iteration']} | {st['variable']} | {st['score']:.3f} | {spec} | "
+                         f"{st['trace_gain'] * 100:.1f} % | {st['after']['normal']['mae'] * 1e3:.2f} |")
+    else:
+        lines.append("No predictive effect found (nothing a feature of a new scan can correct).")
+    lines += ["", "Live before / after (eval part, no ground truth used):", "", "| | MAE normal µm | R² normal | "
+              "p95 normal µm |", "|---|---|---|---|"]
+    for k in ("before", "after"):
+        m = rep[k]["normal"]
+        lines.append(f"| {k} | {m['mae'] * 1e3:.2f} | {m['r2']:.3f} | {m['p95'] * 1e3:.2f} |")
+    dg = rep.get("diagnostic", {})
+    lines += ["", "## Diagnostic findings (need the scan's ground truth: never a live improvement)", ""]
+    if not dg.get("findings"):
+        lines.append("No diagnostic effect found.")
+    for f in dg.get("findings", []):
+        if f["kind"] == "offset":
+            o = f["offsets"]
+            lines += [f"### {f['variable']}: {f['structure']}", "",
+                      f"{o['n_identities']} identities; |offset| median {o['median_um']:.1f} µm, max "
+                      f"{o['max_um']:.1f} µm; median bootstrap s.e. {o['median_se_um']:.1f} µm ({o['bootstrap']['n']} "
+                      f"draws of {o['bootstrap']['unit']}); direction coherence {o['direction_coherence']:.2f}; "
+                      f"trace gain {f.get('trace_gain', 0) * 100:.0f} %.", "", f"Fix: {f['fix']}.", "",
+                      "| identity | offset x / y / z µm | s.e. x / y / z µm | weakest-direction eigenvalue |",
+                      "|---|---|---|---|"]
+            for r in o["per_identity"][:30]:
+                lines.append(f"| {r['identity']} | {' / '.join(f'{v:.1f}' for v in r['offset_um'])} | "
+                             f"{' / '.join(f'{v:.1f}' for v in r['se_um'])} | {r['weakest_direction_eig']:.3g} |")
+            if o["n_identities"] > 30:
+                lines.append(f"| … {o['n_identities'] - 30} more (report.json lists {o['per_identity_shown']}) | | | |")
+            lines.append("")
+        else:
+            lines += [f"### {f['variable']}: {f['structure']}", "",
+                      f"peak {f['peak_frequency']:.4g} {f['unit']} (period {f['period']:.4g}), amplitude "
+                      f"{f['amplitude_um']:.1f} µm, phase coherence {f['phase_coherence']:.2f} (1: locked to the "
+                      f"variable), spectral score {f['spectral_score']:.3f}, Holm p {f['p_holm']:.2g}; "
+                      + ("not tried as a feature (phase not locked)." if f["trace_gain_as_feature"] is None else
+                         f"as a feature it did not lower the trace error (gain "
+                         f"{f['trace_gain_as_feature'] * 100:.1f} %)."),
+                      "", f"Fix: {f['fix']}.", ""]
+            for a in f.get("also_seen_over", []):
+                lines.append(f"- also seen over {a['variable']} (peak {a['peak_frequency']:.4g} {a['unit']})")
+    for b in dg.get("barred_by_fitted_positions", []):
+        lines.append(f"- `{b['variable']}` significant (score {b['score']:.3f}) but not selectable: {b['reason']}")
+    if dg.get("eval_with_offsets"):
+        m = dg["eval_with_offsets"]["normal"]
+        lines += ["", f"With the offsets fitted on the eval groups' own ground truth (cross-fit, diagnostic only): "
+                      f"MAE normal {m['mae'] * 1e3:.2f} µm, R² {m['r2']:.3f}, p95 {m['p95'] * 1e3:.2f} µm."]
     lines += ["", "## Iterations", ""]
     for it in rep["iterations"]:
         sel = it["selected"]
         lines.append(f"- iteration {it['iteration']}: " + (f"added **{sel['name']}** as {sel['correction']} "
-                                                            f"(score {sel['score']:.3f})" if sel else
+                                                            f"({sel['finding']}, score {sel['score']:.3f})" if sel else
                                                             "no significant effect found"))
-    lines += ["", "## Before (eval part)", "", _table(rep["before"]), "", "## After (eval part)", "",
+    lines += ["", "## Before (eval part)", "", _table(rep["before"]), "", "## After, live (eval part)", "",
               _table(rep["after"]), ""]
     lines += [f"![{p}]({p})" for p in plots]
     (out / "report.md").write_text("\n".join(lines) + "\n")

@@ -16,15 +16,17 @@ from typing import Any
 
 import numpy as np
 
-from .candidates import CandidateInfo, build_candidates
+from .candidates import SPECTRAL_NAMES, CandidateInfo, build_candidates
 from .correct import cross_fit_offsets, fit_offsets
 from .data import LoopData, LoopInputError
-from .model import AxisModel, GivenModel, fit_family
-from .trace import TraceConfig, trace_candidates
+from .diagnose import FIXES, LOCKED_COHERENCE, fix_for, offset_table, oscillation_finding
+from .model import AxisModel, GivenModel, fit_family, fit_normal_corrector
+from .trace import TraceConfig, cv_folds, holm, spectral_test, trace_candidates
 
 __all__ = ["LoopConfig", "LoopResult", "error_summary", "metrics", "run_loop", "split_roles"]
 
 ROLE_TRAIN, ROLE_TRACE, ROLE_EVAL = 0, 1, 2
+REPORT_SCHEMA = "xmetro.loop.report/2"
 
 
 @dataclass
@@ -45,6 +47,8 @@ class LoopConfig:
             (the trace part is held out from model fitting; offsets are cross-fitted); else the next one is tried.
         max_tries: at most this many significant candidates of each kind (continuous, identity) are tried per
             iteration (so failing continuous candidates cannot use up the tries of the identity ones).
+        min_phase_coherence: a candidate significant by the spectral test only is tried as a feature when the
+            oscillation's phase coherence across clouds reaches this; else it is a diagnostic oscillation.
         trace: TraceConfig (permutations, alpha, minimum effect, ...).
         seed: seed of the role draw, the model and the trace.
     """
@@ -59,6 +63,7 @@ class LoopConfig:
     offset_ridge: float = 1e-3
     min_gain: float = 0.02
     max_tries: int = 4
+    min_phase_coherence: float = LOCKED_COHERENCE
     trace: TraceConfig = field(default_factory=TraceConfig)
     seed: int = 0
     threads: int = 2
@@ -139,15 +144,24 @@ def error_summary(errors: np.ndarray, normals: np.ndarray) -> dict:
     return d
 
 
-def _ordered(scores, info: dict[str, CandidateInfo], correction: str, max_tries: int) -> list:
+def _spectral_only(s) -> bool:
+    return bool(s.spectral and s.spectral.get("significant") and "learner" not in s.significant_by)
+
+
+def _ordered(scores, info: dict[str, CandidateInfo], correction: str, max_tries: int,
+             min_coherence: float = 0.5) -> list:
     """Effects to try, in order: significant *continuous* candidates by score (held out by whole clouds/profiles, so
     they generalise to unseen ones), then significant *identity* candidates by score. Identity candidates are scored
     inside their own groups, which lets them mimic any smooth within-group effect (drift, distortion) — so they come
-    last, as the loop's last resort (per-profile / per-pass offsets)."""
-    ok = [s for s in scores if s.significant and not s.in_model]
+    last, as the loop's last resort (per-profile / per-pass offsets). A candidate significant by the spectral test
+    alone is tried as a feature only when its oscillation is phase-locked to it (coherence ≥ ``min_coherence``):
+    a feature cannot predict an oscillation whose phase changes from cloud to cloud (it is diagnostic)."""
+    ok = [s for s in scores if s.significant and not s.in_model and not info[s.name].confounded
+          and not (_spectral_only(s) and s.spectral["phase_coherence"] < min_coherence)]
     cont = [s for s in ok if info[s.name].kind != "identity" and correction != "offset"]
     ident = [s for s in ok if info[s.name].kind == "identity" and correction != "feature"]
-    return sorted(cont, key=lambda s: -s.score)[:max_tries] + sorted(ident, key=lambda s: -s.score)[:max_tries]
+    return (sorted(cont, key=lambda s: -s.rank_score)[:max_tries]
+            + sorted(ident, key=lambda s: -s.score)[:max_tries])
 
 
 def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | None = None) -> LoopResult:
@@ -167,6 +181,7 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
         raise LoopInputError("no candidate variable available for this input")
     E, Nrm = data.errors, data.normals
     feat_names = list(data.feature_names)
+    n_given = len(feat_names)
     X = np.asarray(data.X, dtype=np.float32)
 
     def fit_model(Xm: np.ndarray, names: list[str], target: np.ndarray = E):
@@ -185,6 +200,22 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
     added: list[str] = []
     offset_summaries: dict[str, dict] = {}
 
+    def refit(Xm: np.ndarray, names: list[str], o_pred: np.ndarray) -> tuple[Any, np.ndarray]:
+        """The model of the features ``names`` (or the given model's corrector) fitted to what the offsets
+        ``o_pred`` leave: trained on the per-identity offsets too, it would learn them from whatever feature tells
+        the training clouds apart, and no feature carries them to unseen profiles or passes."""
+        if given is None:
+            m = fit_model(Xm, names, E - o_pred)
+            return m, m.predict(Xm)
+        # The given model covers its own features; the corrector learns what they leave along the normal as a
+        # function of the added variables only. On the full feature set, per axis, it fits the few training
+        # clouds' geometry and misses e.g. a many-period oscillation over t (docs/closed-loop.md).
+        new_cols = Xm[:, n_given:]
+        rn_target = np.einsum("ij,ij->i", E - base_pred - o_pred, Nrm)
+        corr = fit_normal_corrector(cfg.family, new_cols[A], rn_target[A], names[n_given:], seed=cfg.seed,
+                                    iterations=cfg.iterations, threads=cfg.threads)
+        return model, base_pred + corr.predict(new_cols, Nrm)
+
     def offsets_for(mpred: np.ndarray, names: list[str]) -> tuple[np.ndarray, dict[str, dict]]:
         """Cross-fitted per-identity offsets (applied in order) on top of ``mpred``, and their eval summaries."""
         total = np.zeros_like(mpred)
@@ -199,7 +230,7 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
         return total, summ
 
     report: dict = {
-        "schema": "xmetro.loop.report/1",
+        "schema": REPORT_SCHEMA,
         "source": data.source,
         "hold_by": data.hold_by,
         "artifact": data.artifact,
@@ -216,13 +247,19 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
                    "max_iter": cfg.max_iter, "min_gain": cfg.min_gain,
                    "max_tries": cfg.max_tries, "correction": cfg.correction, "seed": cfg.seed,
                    "block_size": cfg.block_size, "trace": {k: getattr(cfg.trace, k) for k in
-                                                           ("n_folds", "n_bins", "shrink", "n_perm", "alpha",
-                                                            "min_effect", "block_size", "max_points")}},
+                                                           ("n_folds", "n_bins", "bin_levels", "shrink", "n_perm",
+                                                            "alpha", "min_effect", "block_size", "max_points",
+                                                            "spectral", "spectral_min_periods",
+                                                            "spectral_max_periods", "spectral_n_freq",
+                                                            "spectral_detrend")}},
     }
     before = metrics(E[C], model_pred[C], Nrm[C])
     iterations: list[dict] = []
     plots: list[dict] = []
     first_candidates: list[dict] | None = None
+    oscillations: dict[str, dict] = {}
+    diag_gain: dict[str, dict] = {}
+    pred_steps: list[dict] = []
     for it in range(1, cfg.max_iter + 1):
         pred = model_pred + offset_pred
         resid = E - pred
@@ -234,33 +271,42 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
             data.group[B], data.order[B], tcfg, normal_residual=rn[B],
             meta={n: {"description": cand_info[n].description, "unit": cand_info[n].unit,
                       "in_model": cand_info[n].in_model} for n in names},
+            spectral=SPECTRAL_NAMES.intersection(names),
         )
-        cands = [s.to_dict() for s in scores]
+        cands = [{**s.to_dict(), "confounded": cand_info[s.name].confounded,
+                  "finding": "diagnostic" if cand_info[s.name].kind == "identity" else "predictive"} for s in scores]
         if first_candidates is None:
             first_candidates = cands
         rec: dict = {"iteration": it, "candidates": cands, "selected": None, "rejected": [],
                      "before": metrics(E[C], pred[C], Nrm[C])}
         mse_b = float(((E[B] - pred[B]) ** 2).sum())
         sel = None
-        for cand in _ordered(scores, cand_info, cfg.correction, cfg.max_tries):
+        it_osc: dict[str, dict] = {}  # oscillations a feature cannot follow, seen in this iteration
+        for s_ in scores:
+            if (_spectral_only(s_) and not s_.in_model and not cand_info[s_.name].confounded
+                    and s_.spectral["phase_coherence"] < cfg.min_phase_coherence):
+                it_osc[s_.name] = oscillation_finding(s_.to_dict(), s_.name, cand_info[s_.name].unit, None)
+        for cand in _ordered(scores, cand_info, cfg.correction, cfg.max_tries, cfg.min_phase_coherence):
             kind = cand_info[cand.name].kind
             if kind == "identity":
                 t_offsets = [*offsets, cand.name]
                 t_model, t_model_pred, t_X, t_feats = model, model_pred, X, feat_names
+                if added:
+                    # The features already added learnt these offsets too (they were not in yet): refit them on
+                    # what the offsets leave (on top of the current model, or of the model without the added
+                    # features), then the offsets on top (below). Kept: whichever of the current model and the two
+                    # refits predicts the trace part best *live* (without offsets; the trace part is held out from
+                    # fitting): a diagnostic offset must never make the live model worse.
+                    options = [(model, model_pred)]
+                    for start in (model_pred, base_pred):
+                        options.append(refit(X, feat_names, offsets_for(start, t_offsets)[0]))
+                    live = [float(((E[B] - p_[B]) ** 2).sum()) for _, p_ in options]
+                    t_model, t_model_pred = options[int(np.argmin(live))]
             else:
                 t_offsets = offsets
                 t_X = np.hstack([X, cand_vals[cand.name][:, None].astype(np.float32)])
                 t_feats = [*feat_names, cand.name]
-                # The model (or the given model's residual corrector) learns what the offsets already added leave
-                # (their current values, then refitted on top below): otherwise it is trained on the per-identity
-                # offsets too, which no feature can carry to unseen profiles or passes.
-                if given is None:
-                    t_model = fit_model(t_X, t_feats, E - offset_pred)
-                    t_model_pred = t_model.predict(t_X)
-                else:
-                    t_model = model
-                    corr = fit_model(t_X, t_feats, E - base_pred - offset_pred)
-                    t_model_pred = base_pred + corr.predict(t_X)
+                t_model, t_model_pred = refit(t_X, t_feats, offset_pred)
             t_offset_pred, t_summ = offsets_for(t_model_pred, t_offsets)
             t_pred = t_model_pred + t_offset_pred
             # Check on the trace part (held out from model fitting; offsets cross-fitted): a traced variable that
@@ -268,35 +314,155 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
             gain = 1.0 - float(((E[B] - t_pred[B]) ** 2).sum()) / mse_b
             if gain < cfg.min_gain:
                 rec["rejected"].append({"name": cand.name, "trace_gain": gain})
+                sp = cand.spectral or {}
+                if kind != "identity" and sp.get("significant"):
+                    # Significant oscillation the variable cannot predict: diagnostic (confirmed at the end).
+                    it_osc[cand.name] = oscillation_finding(cand.to_dict(), cand.name, cand_info[cand.name].unit,
+                                                            gain)
                 continue
             sel, model, model_pred, X, feat_names = cand, t_model, t_model_pred, t_X, t_feats
             offsets, offset_pred = t_offsets, t_offset_pred
             offset_summaries.update(t_summ)
             if kind == "identity":
-                action = {"correction": "offset", "variable": cand.name, "offsets": t_summ[cand.name]}
+                action = {"correction": "offset", "variable": cand.name, "offsets": t_summ[cand.name],
+                          "finding": "diagnostic"}
+                diag_gain[cand.name] = {"iteration": it, "trace_gain": gain, "score": cand.score,
+                                        "p_holm": cand.p_holm}
             else:
                 added.append(cand.name)
-                action = {"correction": "feature", "variable": cand.name, "feature": cand.name}
+                action = {"correction": "feature", "variable": cand.name, "feature": cand.name,
+                          "finding": "predictive"}
+                pred_steps.append({"iteration": it, "variable": cand.name, "trace_gain": gain,
+                                   "score": cand.score, "p_holm": cand.p_holm,
+                                   "significant_by": list(cand.significant_by), "spectral": cand.spectral,
+                                   "after": metrics(E[C], t_model_pred[C], Nrm[C])})
             rec["selected"] = {**cand.to_dict(), **action, "trace_gain": gain}
             break
+        if sel is None or cand_info[sel.name].kind == "identity":
+            # Only where no feature was added: an oscillation seen before a feature took it is not a finding.
+            for k_, v_ in it_osc.items():
+                oscillations.setdefault(k_, v_)
         if sel is None:
             rec["after"] = rec["before"]
+            rec["after_live"] = metrics(E[C], model_pred[C], Nrm[C])
             iterations.append(rec)
             break
         new_pred = model_pred + offset_pred
         rec["after"] = metrics(E[C], new_pred[C], Nrm[C])
+        # What a live node would get (no per-identity offsets: they need the scan's ground truth).
+        rec["after_live"] = metrics(E[C], model_pred[C], Nrm[C])
         iterations.append(rec)
         plots.append({"iteration": it, "variable": sel.name, "x": cand_vals[sel.name][C],
                       "before": rn[C], "after": np.einsum("ij,ij->i", E[C] - new_pred[C], Nrm[C]),
                       "unit": cand_info[sel.name].unit})
     final_pred = model_pred + offset_pred
     report["candidates"] = first_candidates or []
-    report["selected"] = iterations[0]["selected"] if iterations and iterations[0]["selected"] else None
+    # The first *predictive* effect (a feature a live node computes); diagnostic offsets are never "selected".
+    report["selected"] = next((it["selected"] for it in iterations
+                               if it["selected"] and it["selected"]["finding"] == "predictive"), None)
     report["added"] = {"features": added, "offsets": offsets, "offset_summaries": offset_summaries}
+    live_after = metrics(E[C], model_pred[C], Nrm[C])
     report["before"] = before
-    report["after"] = metrics(E[C], final_pred[C], Nrm[C])
+    report["after"] = live_after
+    report["predictive"] = {
+        "added": list(added), "before": before, "after": live_after, "steps": pred_steps,
+        "note": "live figures: the model with the added features on held-out eval groups, no ground truth used",
+    }
+    report["diagnostic"] = _diagnostics(
+        data, cand_info, cand_vals, E - model_pred, offsets, diag_gain,
+        _confirm_oscillations(oscillations, E - model_pred, offsets, cand_vals, B, data, cfg),
+        first_candidates or [],
+        metrics(E[C], final_pred[C], Nrm[C]) if offsets else None, cfg)
     report["iterations"] = iterations
     report["final_features"] = feat_names
     fit_rows = A
     return LoopResult(report, model if (given is None and added) else None, feat_names, added, offsets, plots, X,
                       fit_rows)
+
+
+def _diagnostics(
+    data: LoopData, info: dict[str, CandidateInfo], vals: dict[str, np.ndarray], live_residual: np.ndarray,
+    offsets: list[str], gains: dict[str, dict], oscillations: dict[str, dict], first: list[dict],
+    with_offsets: dict | None, cfg: LoopConfig,
+) -> dict:
+    """The diagnostic section: per-identity offsets (size with bootstrap uncertainty, structure, fix), oscillations
+    a feature could not follow, candidates barred by fitted positions. Offsets are refitted in order on what the
+    live model leaves (all groups), each on top of the previous ones."""
+    findings: list[dict] = []
+    res = live_residual.copy()
+    for name in offsets:
+        keys = vals[name]
+        fname = name[len("field_"):] if name.startswith("field_") else ""
+        if name == "profile_identity" and data.hold_by != "profile" and "line" in data.fields:
+            fname = "line"  # a profile of a scan is (scan, line)
+        raw = np.asarray(data.fields[fname], dtype=float) if fname in data.fields else None
+        table = offset_table(res, data.normals, keys, data.order, data.group, data.group_names, raw=raw,
+                             field=fname, block_size=cfg.block_size, ridge=cfg.offset_ridge, seed=cfg.seed)
+        res = res - cross_fit_offsets(res, data.normals, keys, data.order, cfg.block_size, cfg.offset_ridge)
+        structure, fix = fix_for(name, data.hold_by)
+        findings.append({"variable": name, "kind": "offset", "structure": structure, **gains.get(name, {}),
+                         "offsets": table, "needs_ground_truth": True, "fix": fix})
+    findings += list(oscillations.values())
+    found = {f["variable"] for f in findings}
+    also = [{"variable": c["name"], "score": c["score"], "p_holm": c["p_holm"],
+             "reason": "significant identity not added (an earlier offset took its share, or it failed the "
+                       "trace-part check)"}
+            for c in first if c["significant"] and c["kind"] == "identity" and c["name"] not in found]
+    barred = [{"variable": c["name"], "score": c["score"], "p_holm": c["p_holm"], "reason": c["confounded"]}
+              for c in first if c.get("confounded") and c["significant"]]
+    return {"findings": findings, "other_significant_identities": also, "barred_by_fitted_positions": barred,
+            "eval_with_offsets": with_offsets,
+            "note": "needs the ground truth of the scan it corrects: never a live improvement; eval_with_offsets "
+                    "uses offsets cross-fitted on the eval groups' own ground truth"}
+
+
+def _confirm_oscillations(
+    found: dict[str, dict], live_residual: np.ndarray, offsets: list[str], vals: dict[str, np.ndarray],
+    B: np.ndarray, data: LoopData, cfg: LoopConfig,
+) -> dict[str, dict]:
+    """Oscillations a feature could not follow, re-tested at the end on what the live model leaves (trace part)
+    minus the offsets of the identities inside which the variable varies: a per-pass step also has spectral power
+    over t and positions until its offsets are in. Offsets of identities inside which the variable is constant
+    (a profile has one t) are not taken out: they are a function of the variable, and would hide the oscillation
+    they sample. Holm over the re-tested ones; the strongest is the finding, the others (the same oscillation
+    seen through a variable proportional to it, e.g. scan position ∝ t) are listed with it."""
+    if not found:
+        return {}
+    tc = cfg.trace
+    folds = cv_folds(data.group[B], data.order[B], tc.n_folds, by="group", block_size=tc.block_size, seed=tc.seed)
+    tests = {}
+    for i, name in enumerate(found):
+        x = vals[name]
+        res = live_residual.copy()
+        for ident in offsets:
+            keys = vals[ident]
+            _, inv = np.unique(keys, return_inverse=True)
+            inv = inv.reshape(-1)
+            cnt = np.maximum(np.bincount(inv), 1)
+            within = float(((x - (np.bincount(inv, x) / cnt)[inv]) ** 2).mean())
+            if within < 0.01 * float(x.var()):
+                continue  # the variable is (nearly) constant in each identity
+            res -= cross_fit_offsets(res, data.normals, keys, data.order, cfg.block_size, cfg.offset_ridge)
+        t = spectral_test(res[B], x[B], data.group[B], folds, tc, np.random.default_rng([tc.seed, i, 7]))
+        if t is not None:
+            tests[name] = t
+    if not tests:
+        return {}
+    adj = holm(np.array([t["p_value"] for t in tests.values()]))
+    keep = []
+    for (name, t), pa in zip(tests.items(), adj, strict=True):
+        if pa <= tc.alpha and t["score"] >= tc.min_effect:
+            f = dict(found[name])
+            if (t["phase_coherence"] >= LOCKED_COHERENCE) != (f["phase_coherence"] >= LOCKED_COHERENCE):
+                f["fix"] = FIXES["periodic" if t["phase_coherence"] >= LOCKED_COHERENCE else "oscillation"]
+            f.update({"peak_frequency": t["peak_frequency"], "period": t["period"],
+                      "amplitude_um": 1e3 * t["amplitude_mm"], "phase_coherence": t["phase_coherence"],
+                      "spectral_score": t["score"], "p_holm": float(pa)})
+            keep.append(f)
+    if not keep:
+        return {}
+    keep.sort(key=lambda f: -f["spectral_score"])
+    head = keep[0]
+    head["also_seen_over"] = [{k: f[k] for k in ("variable", "peak_frequency", "unit", "spectral_score")}
+                              for f in keep[1:]]
+    return {head["variable"]: head}

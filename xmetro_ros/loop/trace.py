@@ -4,8 +4,13 @@ permutation test with Holm multiple-testing control.
 Method (per candidate variable ``x``, residual ``R`` (N, 3) mm = actual − predicted error):
 
 - Regressor: a shrunken bin-mean (piecewise-constant) fit of ``R`` on ``x``: quantile bins of ``x`` (continuous
-  candidates) or one bin per identity value (identity candidates, e.g. a profile or pass id). Piecewise-constant
-  fits catch non-linear and non-monotonic effects; shrinkage (``n / (n + shrink)``) keeps sparse bins near zero.
+  candidates, at every resolution of ``bin_levels``: 16 bins follow a trend, 64-192 an oscillation of many periods;
+  the best resolution is kept and the null pays for the choice) or one bin per identity value (identity
+  candidates, e.g. a profile or pass id). Piecewise-constant fits catch non-linear and non-monotonic effects;
+  shrinkage (``n / (n + shrink)``) keeps sparse bins near zero.
+- Spectral test (``spectral_test``, for time / position candidates): phase-free per-cloud periodogram of the
+  detrended residual, peak frequency chosen on the other clouds and read on the held-out ones; reports the peak
+  frequency, amplitude and phase coherence across clouds.
 - Held-out score: K-fold cross-validation. Continuous candidates: folds hold out whole groups (clouds or
   profiles). Identity candidates (an identity's effect cannot transfer to an unseen identity): held out by interleaved
   blocks of points inside each group (fit on some blocks of a profile, score on the others).
@@ -14,7 +19,8 @@ Method (per candidate variable ``x``, residual ``R`` (N, 3) mm = actual − pred
 - Significance: the same score with the residual rows permuted inside each training fold (``n_perm`` times; the
   held-out residual stays untouched), p = (1 + #{null ≥ observed}) / (1 + n_perm); when no permutation reaches the
   observed score, p is extrapolated from a normal fit to the null scores (capped at 1 / (1 + n_perm)), so that few
-  permutations suffice; Holm's step-down correction over all candidates controls the family-wise error rate.
+  permutations suffice; Holm's step-down correction over every test made (all candidates' learner tests and the
+  spectral tests) controls the family-wise error rate.
 - A candidate is *significant* when its Holm-adjusted p ≤ ``alpha`` **and** its score ≥ ``min_effect`` (a
   practical-size floor: a tiny but "significant" share of a huge cloud is not an effect worth a feature).
   The point-wise null cannot see cloud-level coincidences (with few clouds, a candidate whose range differs between
@@ -32,7 +38,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import norm
 
-__all__ = ["CandidateScore", "TraceConfig", "bin_codes", "cv_folds", "holm", "trace_candidates"]
+__all__ = ["CandidateScore", "TraceConfig", "bin_codes", "cv_folds", "holm", "spectral_test", "trace_candidates"]
 
 
 @dataclass(frozen=True)
@@ -41,6 +47,7 @@ class TraceConfig:
 
     n_folds: int = 4
     n_bins: int = 16
+    bin_levels: tuple[int, ...] = (16, 64, 192)
     shrink: float = 20.0
     n_perm: int = 199
     alpha: float = 0.01
@@ -48,6 +55,11 @@ class TraceConfig:
     block_size: int = 24
     max_points: int = 40000
     seed: int = 0
+    spectral: bool = True
+    spectral_min_periods: float = 2.0
+    spectral_max_periods: float = 64.0
+    spectral_n_freq: int = 192
+    spectral_detrend: int = 3
 
 
 @dataclass
@@ -68,6 +80,17 @@ class CandidateScore:
     null_mean: float = 0.0
     null_p95: float = 0.0
     extra: dict = field(default_factory=dict)
+    #: spectral test over this candidate (see ``spectral_test``) with its own ``p_holm`` / ``significant``, or None
+    spectral: dict | None = None
+    #: which tests made it significant: "learner" (held-out bin-mean fit) and / or "spectral"
+    significant_by: list[str] = field(default_factory=list)
+
+    @property
+    def rank_score(self) -> float:
+        """Score used to order effects: the learner's, or the spectral one when only the spectral test fired."""
+        if self.spectral and self.spectral.get("significant") and "learner" not in self.significant_by:
+            return float(self.spectral["score"])
+        return float(self.score)
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -159,45 +182,173 @@ def score_candidate(
     R: np.ndarray, x: np.ndarray, kind: str, folds: np.ndarray, cfg: TraceConfig, rng: np.random.Generator | None,
     normal_res: np.ndarray | None = None,
 ) -> dict:
-    """Held-out explained variance of ``R`` (N, A) by ``x`` and its permutation null (when ``rng`` is given)."""
+    """Held-out explained variance of ``R`` (N, A) by ``x`` and its permutation null (when ``rng`` is given).
+
+    Continuous candidates are fitted at every resolution of ``cfg.bin_levels`` (quantile bins: 16 follow a smooth
+    trend, 64-192 follow an oscillation of many periods over the candidate's range); the score is the best
+    resolution's, and each permutation's null score is its own best over the same resolutions (the same permuted
+    rows for every resolution), so the maximum is paid for in the p-value."""
     A = R.shape[1]
-    tot_sse, tot_sst = np.zeros(A), np.zeros(A)
-    tot_null = np.zeros((cfg.n_perm if rng is not None else 0, A))
-    n_sse = n_sst = 0.0
+    levels = (0,) if kind == "identity" else tuple(cfg.bin_levels)
+    L = len(levels)
+    P = cfg.n_perm if rng is not None else 0
+    tot_sse, tot_sst = np.zeros((L, A)), np.zeros(A)
+    tot_null = np.zeros((L, P, A))
+    n_sse, n_sst = np.zeros(L), 0.0
     for f in np.unique(folds):
         te = folds == f
         tr = ~te
         if tr.sum() < 2 * cfg.n_bins or te.sum() < 2:
             continue
-        ctr, cte, nb = bin_codes(x[tr], x[te], kind, cfg.n_bins)
-        perms = None
-        if rng is not None:
-            perms = np.argsort(rng.random((cfg.n_perm, int(tr.sum()))), axis=1)
-        sse, sst, null = _fold_scores(R, ctr, cte, nb, tr, te, cfg.shrink, perms)
-        tot_sse += sse
-        tot_sst += sst
-        if rng is not None:
-            tot_null += null
-        if normal_res is not None:
-            s2, t2, _ = _fold_scores(normal_res[:, None], ctr, cte, nb, tr, te, cfg.shrink, None)
-            n_sse += float(s2[0])
-            n_sst += float(t2[0])
+        perms = np.argsort(rng.random((P, int(tr.sum()))), axis=1) if rng is not None else None
+        for li, nbins in enumerate(levels):
+            ctr, cte, nb = bin_codes(x[tr], x[te], kind, nbins)
+            sse, sst, null = _fold_scores(R, ctr, cte, nb, tr, te, cfg.shrink, perms)
+            tot_sse[li] += sse
+            if li == 0:
+                tot_sst += sst
+            if rng is not None:
+                tot_null[li] += null
+            if normal_res is not None:
+                s2, t2, _ = _fold_scores(normal_res[:, None], ctr, cte, nb, tr, te, cfg.shrink, None)
+                n_sse[li] += float(s2[0])
+                if li == 0:
+                    n_sst += float(t2[0])
     if tot_sst.sum() <= 0:
         raise ValueError("the residual has no variance on the held-out folds (too few points or groups to trace)")
-    score = 1.0 - tot_sse.sum() / tot_sst.sum()
-    axes = {ax: float(1.0 - tot_sse[i] / tot_sst[i]) if tot_sst[i] > 0 else 0.0 for i, ax in enumerate("xyz"[:A])}
-    out = {"score": float(score), "score_axes": axes, "score_normal": float(1.0 - n_sse / n_sst) if n_sst > 0 else 0.0}
+    per_level = 1.0 - tot_sse.sum(axis=1) / tot_sst.sum()
+    best = int(np.argmax(per_level))
+    score = float(per_level[best])
+    axes = {ax: float(1.0 - tot_sse[best, i] / tot_sst[i]) if tot_sst[i] > 0 else 0.0
+            for i, ax in enumerate("xyz"[:A])}
+    out = {"score": score, "score_axes": axes,
+           "score_normal": float(1.0 - n_sse[best] / n_sst) if n_sst > 0 else 0.0,
+           "bins": int(levels[best])}
     if rng is not None:
-        null = 1.0 - tot_null.sum(axis=1) / tot_sst.sum()
-        n_ge = int(np.sum(null >= score))
-        if n_ge > 0:
-            out["p_value"] = float((1 + n_ge) / (1 + len(null)))
-        else:
-            # Beyond the permutation resolution: extrapolate with a normal fit to the null (sum over many points).
-            sd = max(float(null.std(ddof=1)), 1e-12)
-            out["p_value"] = float(min(1.0 / (1 + len(null)), norm.sf((score - null.mean()) / sd)))
-        out["null_mean"] = float(null.mean())
-        out["null_p95"] = float(np.quantile(null, 0.95))
+        null = (1.0 - tot_null.sum(axis=2) / tot_sst.sum()).max(axis=0)
+        out.update(_p_value(score, null))
+    return out
+
+
+def _p_value(score: float, null: np.ndarray) -> dict:
+    """Permutation p-value of ``score`` against ``null`` (P,), extrapolated by a normal fit beyond the resolution."""
+    n_ge = int(np.sum(null >= score))
+    if n_ge > 0:
+        p = float((1 + n_ge) / (1 + len(null)))
+    else:
+        # Beyond the permutation resolution: extrapolate with a normal fit to the null (sum over many points).
+        sd = max(float(null.std(ddof=1)), 1e-12)
+        p = float(min(1.0 / (1 + len(null)), norm.sf((score - null.mean()) / sd)))
+    return {"p_value": p, "null_mean": float(null.mean()), "null_p95": float(np.quantile(null, 0.95))}
+
+
+def _poly_basis(x: np.ndarray, deg: int) -> np.ndarray:
+    """Orthonormal basis (n, deg + 1) of the polynomials of degree ≤ ``deg`` in ``x`` (for detrending)."""
+    z = (x - x.mean()) / max(float(x.std()), 1e-12)
+    q, _ = np.linalg.qr(np.vander(z, deg + 1, increasing=True))
+    return q
+
+
+def spectral_test(
+    R: np.ndarray, x: np.ndarray, groups: np.ndarray, folds: np.ndarray, cfg: TraceConfig,
+    rng: np.random.Generator | None,
+) -> dict | None:
+    """Phase-free spectral test of the residual ``R`` (N, A) over the candidate ``x``, held out by group.
+
+    Per group (cloud / profile), the residual is detrended (polynomial of degree ``cfg.spectral_detrend`` in x) and,
+    at each frequency of a grid from ``spectral_min_periods`` to ``spectral_max_periods`` periods over the median
+    group span of x (and below half the inverse median spacing of x), a sinusoid a·cos + b·sin with its own
+    amplitude and phase is least-squares fitted per axis (the floating-mean Lomb-Scargle periodogram, written as
+    batched 2×2 normal equations so that all permutations share one matrix product; scipy's ``lombscargle`` takes
+    one series at a time). Power = explained fraction of the group's detrended residual variance (axes summed).
+    Held out: for every group fold, the frequency of the highest power averaged over the *other* groups is read on
+    the held-out groups; the score is that held-out power minus its expectation for noise (2 fitted terms per
+    axis: 2 / (n − deg − 1)). Null: the residual permuted inside each group (same procedure, including the
+    frequency choice). Because the phase is fitted per group, an oscillation whose phase changes from scan to scan
+    is found too; ``phase_coherence`` (1: locked to x, ~0: random per group) tells whether x can predict it.
+
+    Returns None when x gives no usable frequency range (constant, or too few distinct values).
+    """
+    ug, gi = np.unique(groups, return_inverse=True)
+    gi = gi.reshape(-1)
+    A = R.shape[1]
+    spans, steps = [], []
+    for k in range(len(ug)):
+        xs = np.unique(x[gi == k])
+        if len(xs) > 2:
+            spans.append(xs[-1] - xs[0])
+            steps.append(np.median(np.diff(xs)))
+    if not spans or np.median(spans) <= 0:
+        return None
+    span = float(np.median(spans))
+    fmin = cfg.spectral_min_periods / span
+    fmax = min(cfg.spectral_max_periods / span, 0.5 / max(float(np.median(steps)), 1e-12))
+    if fmax <= fmin:
+        return None
+    freqs = np.linspace(fmin, fmax, cfg.spectral_n_freq)
+    P = cfg.n_perm if rng is not None else 0
+    G = len(ug)
+    power = np.zeros((G, len(freqs), P + 1))
+    coef = np.zeros((G, len(freqs), 2, A))  # observed cos / sin coefficients per axis (mm)
+    bias = np.zeros(G)
+    fold_of = np.zeros(G, dtype=np.int64)
+    deg = cfg.spectral_detrend
+    for k in range(G):
+        idx = np.flatnonzero(gi == k)
+        fold_of[k] = folds[idx[0]]
+        n = len(idx)
+        if n < 4 * (deg + 3):
+            continue
+        xc = x[idx]
+        Q = _poly_basis(xc, deg)
+        Rc = R[idx] - Q @ (Q.T @ R[idx])
+        Y = Rc
+        if P:
+            perm = np.argsort(rng.random((P, n)), axis=1)
+            Yp = Rc[perm].transpose(1, 0, 2).reshape(n, P * A)
+            Y = np.hstack([Rc, Yp - Q @ (Q.T @ Yp)])
+        tss = (Y**2).sum(axis=0).reshape(P + 1, A).sum(axis=1)
+        ph = (2.0 * np.pi) * freqs[:, None] * xc[None, :]  # absolute x: the phase is x's
+        C, S = np.cos(ph), np.sin(ph)
+        C -= (C @ Q) @ Q.T
+        S -= (S @ Q) @ Q.T
+        cc, ss, cs = (C * C).sum(1), (S * S).sum(1), (C * S).sum(1)
+        det = cc * ss - cs * cs
+        ok = det > 1e-9 * np.maximum(cc * ss, 1e-300)
+        det = np.where(ok, det, 1.0)
+        bc, bs = C @ Y, S @ Y  # (F, (P + 1) A)
+        ess = (ss[:, None] * bc**2 - 2.0 * cs[:, None] * bc * bs + cc[:, None] * bs**2) / det[:, None]
+        ess = np.where(ok[:, None], ess, 0.0)
+        power[k] = ess.reshape(len(freqs), P + 1, A).sum(axis=2) / np.maximum(tss, 1e-300)[None, :]
+        a = (ss[:, None] * bc[:, :A] - cs[:, None] * bs[:, :A]) / det[:, None]
+        b = (cc[:, None] * bs[:, :A] - cs[:, None] * bc[:, :A]) / det[:, None]
+        coef[k, :, 0], coef[k, :, 1] = a, b
+        bias[k] = 2.0 / max(n - deg - 1, 1)
+    held = np.zeros(P + 1)
+    n_held = 0
+    for f in np.unique(fold_of):
+        te = fold_of == f
+        if te.all():
+            continue
+        pick = power[~te].mean(axis=0).argmax(axis=0)  # (P + 1,) frequency chosen without the held-out groups
+        held += (power[te][:, pick, np.arange(P + 1)] - bias[te][:, None]).sum(axis=0)
+        n_held += int(te.sum())
+    if n_held == 0:
+        return None
+    held /= n_held
+    peak = int(power[:, :, 0].mean(axis=0).argmax())
+    cf = coef[:, peak]  # (G, 2, A)
+    amp = np.sqrt((cf**2).sum(axis=1)).max(axis=1)  # per group, amplitude of the strongest axis (mm)
+    # Phase coherence along the dominant direction of the coefficients (the axes' signs may differ by group).
+    flat = cf.reshape(-1, A)
+    _, _, vt = np.linalg.svd(flat, full_matrices=False)
+    z = cf[:, 0] @ vt[0] + 1j * (cf[:, 1] @ vt[0])
+    coherence = float(np.abs(z.sum()) / max(np.abs(z).sum(), 1e-300))
+    out = {"score": float(held[0]), "peak_frequency": float(freqs[peak]), "period": float(1.0 / freqs[peak]),
+           "amplitude_mm": float(np.median(amp)), "phase_coherence": coherence,
+           "frequency_range": [float(fmin), float(fmax)], "n_groups": int(G)}
+    if P:
+        out.update(_p_value(float(held[0]), held[1:]))
     return out
 
 
@@ -212,6 +363,7 @@ def trace_candidates(
     normal_residual: np.ndarray | None = None,
     identity_groups: dict[str, np.ndarray] | None = None,
     meta: dict[str, dict] | None = None,
+    spectral: set[str] | frozenset[str] = frozenset(),
 ) -> list[CandidateScore]:
     """Rank candidates by held-out explained variance of ``residual`` (N, 3) mm; significance by permutation + Holm.
 
@@ -223,6 +375,8 @@ def trace_candidates(
         order: (N,) acquisition order of each point inside its group (blocks for identity candidates).
         normal_residual: (N,) residual along the nominal normal (reported, not used for ranking).
         meta: name → {"description", "unit", "in_model"} copied into the scores.
+        spectral: continuous candidates that also get the spectral test (``spectral_test``: time, positions) when
+            ``cfg.spectral``; its p-values join the learner's in one Holm family.
     Returns:
         scores sorted by decreasing score (significant first).
     """
@@ -257,15 +411,30 @@ def trace_candidates(
                    "null_mean": 0.0, "null_p95": 0.0}
         else:
             res = score_candidate(R, x, kind, folds, cfg, rng, nres)
+        spec = None
+        if cfg.spectral and kind != "identity" and name in spectral and np.unique(x).size > 2:
+            spec = spectral_test(R, x, groups, folds_group, cfg, np.random.default_rng([cfg.seed, i, 1]))
         m = meta.get(name, {})
         scores.append(CandidateScore(
             name=name, kind=kind, score=res["score"], score_axes=res["score_axes"], score_normal=res["score_normal"],
             p_value=res["p_value"], null_mean=res["null_mean"], null_p95=res["null_p95"],
             description=m.get("description", ""), unit=m.get("unit", ""), in_model=bool(m.get("in_model", False)),
+            extra={"bins": res["bins"]} if "bins" in res else {}, spectral=spec,
         ))
-    adj = holm(np.array([s.p_value for s in scores]))
-    for s, pa in zip(scores, adj, strict=True):
+    # One Holm family over every test made (learner tests of all candidates + spectral tests).
+    pv = [s.p_value for s in scores] + [s.spectral["p_value"] for s in scores if s.spectral]
+    adj = holm(np.array(pv))
+    k = len(scores)
+    for s, pa in zip(scores, adj[:k], strict=True):
         s.p_holm = float(pa)
-        s.significant = bool(pa <= cfg.alpha and s.score >= cfg.min_effect)
-    scores.sort(key=lambda s: (not s.significant, -s.score))
+        s.significant_by = ["learner"] if (pa <= cfg.alpha and s.score >= cfg.min_effect) else []
+    for s, pa in zip([s for s in scores if s.spectral], adj[k:], strict=True):
+        assert s.spectral is not None
+        s.spectral["p_holm"] = float(pa)
+        s.spectral["significant"] = bool(pa <= cfg.alpha and s.spectral["score"] >= cfg.min_effect)
+        if s.spectral["significant"]:
+            s.significant_by.append("spectral")
+    for s in scores:
+        s.significant = bool(s.significant_by)
+    scores.sort(key=lambda s: (not s.significant, -s.rank_score))
     return scores
