@@ -284,7 +284,7 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
         it_osc: dict[str, dict] = {}  # oscillations a feature cannot follow, seen in this iteration
         for s_ in scores:
             if (_spectral_only(s_) and not s_.in_model and not cand_info[s_.name].confounded
-                    and s_.spectral["phase_coherence"] < cfg.min_phase_coherence):
+                    and s_.spectral is not None and s_.spectral["phase_coherence"] < cfg.min_phase_coherence):
                 it_osc[s_.name] = oscillation_finding(s_.to_dict(), s_.name, cand_info[s_.name].unit, None)
         for cand in _ordered(scores, cand_info, cfg.correction, cfg.max_tries, cfg.min_phase_coherence):
             kind = cand_info[cand.name].kind

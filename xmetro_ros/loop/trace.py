@@ -303,7 +303,7 @@ def spectral_test(
         Q = _poly_basis(xc, deg)
         Rc = R[idx] - Q @ (Q.T @ R[idx])
         Y = Rc
-        if P:
+        if P and rng is not None:
             perm = np.argsort(rng.random((P, n)), axis=1)
             Yp = Rc[perm].transpose(1, 0, 2).reshape(n, P * A)
             Y = np.hstack([Rc, Yp - Q @ (Q.T @ Yp)])
