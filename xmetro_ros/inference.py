@@ -288,12 +288,10 @@ class ModelSet:
             return out[:, :3], (out[:, 3:] if sigma else None)
         order, pos = set_order(p, self.set_size, self.partition_seed)
         flat = _gather_rows(X, order if rows is None else rows[order])
-        ys, ls = self._run_sets(flat.reshape(-1, self.set_size, flat.shape[1]), sigma)
-        y = ys.reshape(-1, 3)
+        y = self._run_sets(flat.reshape(-1, self.set_size, flat.shape[1]), sigma)
         if sigma:
-            np.exp(ls, out=ls)  # numpy's float32 exp, as before (σ̂ = exp(log σ̂) in float32, then float64)
-            y = np.concatenate([y, ls.reshape(-1, 3)], axis=1)
-        _scatter_back(y, pos, rows, out)
+            np.exp(y[..., 3:], out=y[..., 3:])  # numpy's float32 exp, as before (σ̂ = exp(log σ̂) in float32)
+        _scatter_back(y.reshape(-1, y.shape[-1]), pos, rows, out)
         return out[:, :3], (out[:, 3:] if sigma else None)
 
     def predict_batch(self, Xq: np.ndarray) -> np.ndarray:
@@ -309,7 +307,7 @@ class ModelSet:
         s = len(order)
         # versions laid end to end in set order: version v's slots are v * s + order's
         flat = _gather_rows(Xq.reshape(q * p, f), (np.arange(q)[:, None] * p + order).reshape(-1))
-        ys, _ = self._run_sets(flat.reshape(-1, self.set_size, f), False)
+        ys = self._run_sets(flat.reshape(-1, self.set_size, f), False)
         _scatter_back(ys.reshape(-1, 3), (np.arange(q)[:, None] * s + pos).reshape(-1), None, out.reshape(-1, 3))
         return out
 
@@ -318,34 +316,37 @@ class ModelSet:
         max over its n rows); point-wise members predict every row on its own. Rows must be finite. This is how
         ``predict`` predicts each set of its partition, so a set of the partition given here gets exactly the
         published predictions of its points (the explainer relies on it)."""
-        ys, _ = self._run_sets(np.ascontiguousarray(sets, dtype=np.float32), False)
-        return ys.astype(np.float64)
+        return self._run_sets(np.ascontiguousarray(sets, dtype=np.float32), False).astype(np.float64)
 
     def predict_sets_sigma(self, sets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(K, n, F) → (errors (K, n, 3), σ̂ (K, n, 3)) mm, as :meth:`predict_sets`; σ̂ = 1 on the axes of members
         without a spread output."""
-        ys, ls = self._run_sets(np.ascontiguousarray(sets, dtype=np.float32), True)
-        return ys.astype(np.float64), np.exp(ls).astype(np.float64)
+        y = self._run_sets(np.ascontiguousarray(sets, dtype=np.float32), True)
+        return y[..., :3].astype(np.float64), np.exp(y[..., 3:]).astype(np.float64)
 
-    def _run_sets(self, sets: np.ndarray, sigma: bool) -> tuple[np.ndarray, np.ndarray | None]:
-        """Contiguous float32 sets (K, n, F) → (errors (K, n, 3), log σ̂ (K, n, 3) or None) float32, every member's
-        ONNX run fed slices of ``sets`` itself (no copy); log σ̂ = 0 (σ̂ = 1) on the axes of members without a spread
-        output. With ``sigma`` both outputs come from the same run; without it only ``y`` is asked for."""
+    def _run_sets(self, sets: np.ndarray, sigma: bool) -> np.ndarray:
+        """Contiguous float32 sets (K, n, F) → float32 (K, n, 3) errors, or with ``sigma`` (K, n, 6): errors and
+        log σ̂ side by side (log σ̂ = 0, σ̂ = 1, on the axes of members without a spread output), both outputs of the
+        same ONNX run. Every member's runs are fed slices of ``sets`` itself (no copy); without ``sigma`` only the
+        error output is asked for."""
         k, n, f = sets.shape
-        ys = np.empty((k, n, 3), np.float32)
-        ls = np.zeros((k, n, 3), np.float32) if sigma else None
+        y = np.empty((k, n, 6 if sigma else 3), np.float32)
+        if sigma:
+            y[..., 3:] = 0.0
         for m in self.members:
             want = m.outputs if sigma and m.sigma else m.outputs[:1]
             if m.kind == "points":
-                ys.reshape(k * n, 3)[:, m.axes[0]] = m.session.run(want, {"X": sets.reshape(k * n, f)})[0][:, 0]
+                y.reshape(k * n, -1)[:, m.axes[0]] = m.session.run(want, {"X": sets.reshape(k * n, f)})[0][:, 0]
                 continue
-            ax = slice(m.axes[0], m.axes[-1] + 1) if m.axes == tuple(range(m.axes[0], m.axes[-1] + 1)) else list(m.axes)
+            a0, a1 = m.axes[0], m.axes[-1] + 1
+            ax = slice(a0, a1) if m.axes == tuple(range(a0, a1)) else list(m.axes)
+            ax_s = slice(a0 + 3, a1 + 3) if isinstance(ax, slice) else [a + 3 for a in m.axes]
             for i in range(0, k, self.set_chunk):
                 res = m.session.run(want, {"X": sets[i : i + self.set_chunk]})
-                ys[i : i + self.set_chunk, :, ax] = res[0]
+                y[i : i + self.set_chunk, :, ax] = res[0]
                 if len(res) > 1:
-                    ls[i : i + self.set_chunk, :, ax] = res[1]
-        return ys, ls
+                    y[i : i + self.set_chunk, :, ax_s] = res[1]
+        return y
 
     def predict_with_sigma(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(errors (M, 3), σ̂ (M, 3)) mm for the rows of ONE cloud, with the set partition of :meth:`predict`
