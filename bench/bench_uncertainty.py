@@ -68,13 +68,27 @@ def before_after(ms: ModelSet, X: np.ndarray, reps: int) -> dict:
         "U_max_rel_diff": float(np.nanmax(np.abs(new_u.U / old_u - 1))),
         "domain_distance_max_rel_diff": float(np.nanmax(np.abs(new_u.domain_distance / old_d - 1))),
     }
+    from threadpoolctl import threadpool_limits
+
+    from xmetro_ros.pointsets import set_order
+
+    order, _ = set_order(len(X), ms.set_size, ms.partition_seed)
+    sets = gather_rows(X, order).reshape(-1, ms.set_size, X.shape[1])
+
+    def blas2_before() -> None:  # as the node runs it: OPENBLAS_NUM_THREADS=2 (ros/rclpy_util.py)
+        with threadpool_limits(2, user_api="blas"):
+            ref.domain_distance(ms, X)
+
     times = interleaved({
+        "onnx_runs_only": lambda: ms._run_sets(sets, False),
+        "onnx_runs_only_with_sigma": lambda: ms._run_sets(sets, True),
         "predict_before": lambda: ref.predict(ms, X),
         "predict_after": lambda: ms.predict(X),
         "with_uncertainty_before": lambda: ref.predict_with_uncertainty(ms, X),
         "with_uncertainty_after": lambda: ms.predict_with_uncertainty(X),
         "domain_distance_before": lambda: ref.domain_distance(ms, X),
         "domain_distance_after": lambda: ms.domain_distance(X),
+        "domain_distance_before_blas_2_threads": blas2_before,
     }, reps)
     return {"identical": same, "times": times}
 

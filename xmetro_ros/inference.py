@@ -5,7 +5,12 @@ A model set directory holds ``card.json`` and one or more ONNX files; each file 
 * ``kind: "sets"`` (PointNet): input ``X`` (B, n, F) → ``y`` (B, n, A) mm. The points of one call are treated as
   one cloud, partitioned into sets of ``card["set_size"]`` by a permutation seeded with
   ``card["partition_seed"]`` (see :func:`xmetro_ros.learn.pointnet.partition_sets` and ``card["global_feature"]``).
-Features are the card's ``feature_names`` in order, in the units of ``feature_units`` (the study's: mm, deg, ms,
+How a cloud runs (``predict``, ``predict_with_sigma``, ``predict_with_uncertainty``, ``predict_batch``): the finite
+rows are gathered once, straight into set order (:func:`xmetro_ros.pointsets.set_order`, cached by point count),
+ONNX Runtime is fed slices of that contiguous buffer (``set_chunk`` sets per run), both outputs of the spread head
+come from the same run, and the per-slot outputs are read back to point order in one pass (``set_kernels``): the
+same sets and bit for bit the same predictions as the gather/scatter implementation before it
+(test/test_inference_sets.py against test/reference_inference.py). Features are the card's ``feature_names`` in order, in the units of ``feature_units`` (the study's: mm, deg, ms,
 per mm). Predictions are the systematic error nominal − measured, mm, in the scan frame's axes.
 
 Uncertainty (:meth:`ModelSet.predict_with_uncertainty`): a PointNet member with a second ONNX output
