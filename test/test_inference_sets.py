@@ -164,3 +164,23 @@ def test_domain_distance_matches_float64(default, features):
     assert np.isnan(got[np.isnan(X).any(axis=1)]).all()
     fin = np.all(np.isfinite(X), axis=1)
     np.testing.assert_allclose(got[fin], want[fin], rtol=1e-4, atol=1e-5)
+
+
+def test_domain_distance_leaves_blas_threads_as_they_were(default, features):
+    """The GEMM runs on one BLAS thread; the caller's setting is restored, also with concurrent callers."""
+    import threading
+
+    from threadpoolctl import threadpool_info
+
+    def blas_threads() -> list[int]:
+        return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+
+    with threadpool_limits(2, user_api="blas"):
+        before = blas_threads()
+        ts = [threading.Thread(target=lambda: [default.domain_distance(features) for _ in range(5)])
+              for _ in range(3)]
+        for t in ts:
+            t.start()
+        for t in ts:
+            t.join()
+        assert blas_threads() == before

@@ -10,7 +10,9 @@ rows are gathered once, straight into set order (:func:`xmetro_ros.pointsets.set
 ONNX Runtime is fed slices of that contiguous buffer (``set_chunk`` sets per run), both outputs of the spread head
 come from the same run, and the per-slot outputs are read back to point order in one pass (``set_kernels``): the
 same sets and bit for bit the same predictions as the gather/scatter implementation before it
-(test/test_inference_sets.py against test/reference_inference.py). Features are the card's ``feature_names`` in order, in the units of ``feature_units`` (the study's: mm, deg, ms,
+(test/test_inference_sets.py against test/reference_inference.py).
+
+Features are the card's ``feature_names`` in order, in the units of ``feature_units`` (the study's: mm, deg, ms,
 per mm). Predictions are the systematic error nominal − measured, mm, in the scan frame's axes.
 
 Uncertainty (:meth:`ModelSet.predict_with_uncertainty`): a PointNet member with a second ONNX output
@@ -28,6 +30,8 @@ from __future__ import annotations
 import hashlib
 import json
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -49,15 +53,20 @@ _SET_CHUNK = 128  # sets per ONNX Runtime call: activations stay cache-sized (me
 
 
 _BLAS: list[Any] = []  # threadpoolctl's controller, made once (it scans the loaded libraries: ~10 ms)
+_BLAS_LOCK = threading.Lock()
 
 
-def _one_blas_thread() -> Any:
-    """Context limiting BLAS to one thread (threadpoolctl; its limit is process-wide, restored on exit)."""
-    if not _BLAS:
-        from threadpoolctl import ThreadpoolController
+@contextmanager
+def _one_blas_thread() -> Iterator[None]:
+    """BLAS limited to one thread inside (threadpoolctl). The limit is process-wide and restored on exit: the lock
+    keeps two concurrent callers from restoring each other's limit (the product inside takes ~1 ms)."""
+    with _BLAS_LOCK:
+        if not _BLAS:
+            from threadpoolctl import ThreadpoolController
 
-        _BLAS.append(ThreadpoolController())
-    return _BLAS[0].limit(limits=1, user_api="blas")
+            _BLAS.append(ThreadpoolController())
+        with _BLAS[0].limit(limits=1, user_api="blas"):
+            yield
 
 
 def session_options(threads: int = 1) -> Any:
