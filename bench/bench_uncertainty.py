@@ -23,7 +23,7 @@ from xmetro_ros.dataset import build_table
 from xmetro_ros.features import STUDY_FEATURES
 from xmetro_ros.inference import ModelSet, session_options
 from xmetro_ros.scanner import ScannerModel
-from xmetro_ros.set_kernels import gather_rows
+from xmetro_ros.set_kernels import to_sets
 from xmetro_ros.sim import simulate_scan
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -35,19 +35,30 @@ N = 180_000
 CHUNKS = (32, 64, 128, 256, 512, 1024)
 
 
-def interleaved(fns: dict, reps: int) -> dict:
-    """Run every function once per round, rounds repeated ``reps`` times (after one warm-up round): median and
-    minimum ms of each."""
+def interleaved(fns: dict, reps: int, pairs: dict | None = None) -> dict:
+    """Run every function once per round, rounds repeated ``reps`` times (after one warm-up round), in a new seeded
+    random order each round (a function can slow the next one: threads left spinning, caches): median and
+    minimum ms of each; for each ``pairs`` entry name → (a, b), the median over rounds of a / b and a − b (ms)
+    within the same round (steadier than ratios of medians when the load changes between rounds)."""
     for f in fns.values():
         f()
     t: dict[str, list[float]] = {k: [] for k in fns}
+    keys = list(fns)
+    rng = np.random.default_rng(0)
     for _ in range(reps):
-        for k, f in fns.items():
+        for i in rng.permutation(len(keys)):
+            k = keys[i]
+            f = fns[k]
             t0 = time.perf_counter()
             f()
             t[k].append(time.perf_counter() - t0)
-    return {k: {"median_ms": round(float(np.median(v)) * 1e3, 1), "min_ms": round(float(np.min(v)) * 1e3, 1)}
-            for k, v in t.items()}
+    res: dict = {k: {"median_ms": round(float(np.median(v)) * 1e3, 1), "min_ms": round(float(np.min(v)) * 1e3, 1)}
+                 for k, v in t.items()}
+    for name, (a, b) in (pairs or {}).items():
+        ta, tb = np.asarray(t[a]), np.asarray(t[b])
+        res[name] = {"median_ratio": round(float(np.median(ta / tb)), 3),
+                     "median_difference_ms": round(float(np.median(ta - tb)) * 1e3, 1)}
+    return res
 
 
 def features() -> np.ndarray:
@@ -72,12 +83,16 @@ def before_after(ms: ModelSet, X: np.ndarray, reps: int) -> dict:
 
     from xmetro_ros.pointsets import set_order
 
-    order, _ = set_order(len(X), ms.set_size, ms.partition_seed)
-    sets = gather_rows(X, order).reshape(-1, ms.set_size, X.shape[1])
+    order, pos = set_order(len(X), ms.set_size, ms.partition_seed)
+    sets = to_sets(X, pos, order).reshape(-1, ms.set_size, X.shape[1])
 
     def blas2_before() -> None:  # as the node runs it: OPENBLAS_NUM_THREADS=2 (ros/rclpy_util.py)
         with threadpool_limits(2, user_api="blas"):
             ref.domain_distance(ms, X)
+
+    def blas2_after() -> None:
+        with threadpool_limits(2, user_api="blas"):
+            ms.domain_distance(X)
 
     times = interleaved({
         "onnx_runs_only": lambda: ms._run_sets(sets, False),
@@ -88,8 +103,18 @@ def before_after(ms: ModelSet, X: np.ndarray, reps: int) -> dict:
         "with_uncertainty_after": lambda: ms.predict_with_uncertainty(X),
         "domain_distance_before": lambda: ref.domain_distance(ms, X),
         "domain_distance_after": lambda: ms.domain_distance(X),
-        "domain_distance_before_blas_2_threads": blas2_before,
-    }, reps)
+    }, reps, pairs={
+        "predict_after_vs_before": ("predict_after", "predict_before"),
+        "with_uncertainty_after_vs_before": ("with_uncertainty_after", "with_uncertainty_before"),
+        "predict_after_vs_onnx_runs": ("predict_after", "onnx_runs_only"),
+        "with_uncertainty_after_vs_onnx_runs": ("with_uncertainty_after", "onnx_runs_only_with_sigma"),
+        "predict_before_vs_onnx_runs": ("predict_before", "onnx_runs_only"),
+        "with_uncertainty_before_vs_onnx_runs": ("with_uncertainty_before", "onnx_runs_only_with_sigma"),
+        "with_uncertainty_vs_predict_after": ("with_uncertainty_after", "predict_after"),
+    })
+    # apart: OpenBLAS's worker threads spin after the product and slow whatever runs next
+    times.update(interleaved({"domain_distance_before_blas_2_threads": blas2_before,
+                              "domain_distance_after_blas_2_threads_env": blas2_after}, reps))
     return {"identical": same, "times": times}
 
 
@@ -106,8 +131,8 @@ def onnx_variants(ms: ModelSet, X: np.ndarray, reps: int) -> dict:
     from xmetro_ros.pointsets import set_order
 
     (member,) = [m for m in ms.members if m.kind == "sets"]
-    order, _ = set_order(len(X), ms.set_size, ms.partition_seed)
-    sets = gather_rows(X, order).reshape(-1, ms.set_size, X.shape[1])
+    order, pos = set_order(len(X), ms.set_size, ms.partition_seed)
+    sets = to_sets(X, pos, order).reshape(-1, ms.set_size, X.shape[1])
     outs = list(member.outputs)
     base = _run(member.session, sets, ms.set_chunk, outs)
 
@@ -120,7 +145,8 @@ def onnx_variants(ms: ModelSet, X: np.ndarray, reps: int) -> dict:
         res["chunks"][c] = {"identical": same(_run(member.session, sets, c, outs))}
         fns[f"chunk_{c}"] = lambda c=c: _run(member.session, sets, c, outs)
     fns["chunk_shipped_y_only"] = lambda: _run(member.session, sets, ms.set_chunk, outs[:1])
-    for k, v in interleaved(fns, reps).items():
+    for k, v in interleaved(fns, reps, pairs={"y_only_vs_both_outputs": ("chunk_shipped_y_only",
+                                                                          f"chunk_{ms.set_chunk}")}).items():
         if k.startswith("chunk_") and k[6:].isdigit():
             res["chunks"][int(k[6:])].update(v)
         else:
@@ -151,9 +177,10 @@ def onnx_variants(ms: ModelSet, X: np.ndarray, reps: int) -> dict:
     }
     for k, s in sessions.items():
         res["options"][k] = {"identical": same(_run(s, sets, ms.set_chunk, outs))}
+    vs_shipped = {f"{k}_vs_shipped": (k, "shipped") for k in sessions if k != "shipped"}
     for k, v in interleaved({k: (lambda s=s: _run(s, sets, ms.set_chunk, outs)) for k, s in sessions.items()},
-                            reps).items():
-        res["options"][k].update(v)
+                            reps, pairs=vs_shipped).items():
+        res["options"].setdefault(k, {}).update(v)
     return res
 
 

@@ -41,15 +41,17 @@ import numpy as np
 from .pointsets import set_order
 from .resources import default_model_dir
 from .set_kernels import finite_rows as _finite_rows
-from .set_kernels import gather_rows as _gather_rows
-from .set_kernels import scatter_back as _scatter_back
+from .set_kernels import from_sets as _from_sets
+from .set_kernels import to_sets as _to_sets
 from .set_kernels import warm_up as _warm_kernels
 
 __all__ = ["AXES", "CARD_FORMAT", "ModelLoadError", "ModelSet", "UncertainPrediction", "session_options"]
 
 CARD_FORMAT = "xmetro-model-set/1"
 AXES = ("x", "y", "z")
-_SET_CHUNK = 128  # sets per ONNX Runtime call: activations stay cache-sized (measured ~2x faster than 1024)
+# Sets per ONNX Runtime run: 32-256 are equally fast, 512 and 1024 10-16 % slower (activations leave the cache);
+# any chunk gives the same bits (bench/bench_uncertainty.py measures and checks both).
+_SET_CHUNK = 128
 
 
 _BLAS: list[Any] = []  # threadpoolctl's controller, made once (it scans the loaded libraries: ~10 ms)
@@ -301,11 +303,11 @@ class ModelSet:
         if p == 0:
             return out[:, :3], (out[:, 3:] if sigma else None)
         order, pos = set_order(p, self.set_size, self.partition_seed)
-        flat = _gather_rows(X, order if rows is None else rows[order])
+        flat = _to_sets(X, pos, order, rows)
         y = self._run_sets(flat.reshape(-1, self.set_size, flat.shape[1]), sigma)
         if sigma:
             np.exp(y[..., 3:], out=y[..., 3:])  # numpy's float32 exp, as before (σ̂ = exp(log σ̂) in float32)
-        _scatter_back(y.reshape(-1, y.shape[-1]), pos, rows, out)
+        _from_sets(y.reshape(-1, y.shape[-1]), order, out, rows)
         return out[:, :3], (out[:, 3:] if sigma else None)
 
     def predict_batch(self, Xq: np.ndarray) -> np.ndarray:
@@ -318,11 +320,9 @@ class ModelSet:
         if p == 0:
             return out
         order, pos = set_order(p, self.set_size, self.partition_seed)
-        s = len(order)
-        # versions laid end to end in set order: version v's slots are v * s + order's
-        flat = _gather_rows(Xq.reshape(q * p, f), (np.arange(q)[:, None] * p + order).reshape(-1))
+        flat = _to_sets(Xq, pos, order)  # (Q, S, F): the versions' sets end to end
         ys = self._run_sets(flat.reshape(-1, self.set_size, f), False)
-        _scatter_back(ys.reshape(-1, 3), (np.arange(q)[:, None] * s + pos).reshape(-1), None, out.reshape(-1, 3))
+        _from_sets(ys.reshape(q, -1, 3), order, out)
         return out
 
     def predict_sets(self, sets: np.ndarray) -> np.ndarray:
