@@ -40,6 +40,7 @@ import numpy as np
 
 from .pointsets import set_order
 from .resources import default_model_dir
+from .set_kernels import expand_u as _expand_u
 from .set_kernels import finite_rows as _finite_rows
 from .set_kernels import from_sets as _from_sets
 from .set_kernels import to_sets as _to_sets
@@ -293,13 +294,14 @@ class ModelSet:
 
     def _predict_cloud(self, X: np.ndarray, sigma: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """(errors (M, 3), σ̂ (M, 3) or None) float64 mm for the float32 rows X of one cloud; NaN rows for
-        non-finite features. One gather of the finite rows straight into set order (the cached partition of their
-        count), the ONNX runs on contiguous slices of that buffer, one gather of the per-slot outputs back to point
+        non-finite features. One pass copying the finite rows straight into set order (the cached partition of their
+        count), the ONNX runs on contiguous slices of that buffer, one pass writing the per-slot outputs back in point
         order: no (M, F) intermediate copies, and error and σ̂ come from the same ONNX run."""
         m = len(X)
         rows = _finite_rows(X)  # None: every row finite
         p = m if rows is None else len(rows)
-        out = np.full((m, 6 if sigma else 3), np.nan)
+        # every row is written when all are finite; NaN rows otherwise
+        out = np.empty((m, 6 if sigma else 3)) if rows is None else np.full((m, 6 if sigma else 3), np.nan)
         if p == 0:
             return out[:, :3], (out[:, 3:] if sigma else None)
         order, pos = set_order(p, self.set_size, self.partition_seed)
@@ -385,12 +387,8 @@ class ModelSet:
         err, sig = self.predict_with_sigma(X)
         mult = np.asarray(self.card["uncertainty"]["multiplier"], np.float64)
         dist = self.domain_distance(X)
-        with np.errstate(invalid="ignore"):
-            widen = np.where(dist > 1.0, dist, 1.0)  # NaN distance (no domain_mv) → no widening
         floor = float(self.card["uncertainty"].get("sigma_floor_mm", 0.0))
-        U = sig + floor
-        U *= mult
-        U *= widen[:, None]
+        U = _expand_u(sig, floor, mult, dist)  # (σ̂ + floor) × mult × max(1, distance); NaN distance: no widening
         return UncertainPrediction(err, U, sig, dist, self.out_of_domain_mv(X, dist))
 
     @property
