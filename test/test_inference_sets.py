@@ -123,8 +123,23 @@ def test_batch_and_sets_identical_to_reference(default, features, dt_set):
     assert np.array_equal(ms.predict_batch(Xq), ref.predict_batch(ms, Xq))
 
 
+class _Binding:
+    """An ONNX Runtime I/O binding that remembers the outputs bound since the last run."""
+
+    def __init__(self, b) -> None:
+        self.b = b
+        self.names: dict[str, None] = {}
+
+    def bind_output(self, name, *args):
+        self.names[name] = None
+        return self.b.bind_output(name, *args)
+
+    def __getattr__(self, name):
+        return getattr(self.b, name)
+
+
 class _Counting:
-    """An ONNX Runtime session that records the outputs asked for in each run."""
+    """An ONNX Runtime session that records the outputs asked for in each run (plain or I/O-bound)."""
 
     def __init__(self, sess) -> None:
         self.sess = sess
@@ -133,6 +148,14 @@ class _Counting:
     def run(self, outputs, feed):
         self.calls.append(tuple(outputs) if outputs is not None else ("<all>",))
         return self.sess.run(outputs, feed)
+
+    def io_binding(self):
+        return _Binding(self.sess.io_binding())
+
+    def run_with_iobinding(self, io):
+        self.calls.append(tuple(io.names))
+        io.names = {}
+        return self.sess.run_with_iobinding(io.b)
 
     def __getattr__(self, name):
         return getattr(self.sess, name)

@@ -308,8 +308,9 @@ class ModelSet:
         flat = _to_sets(X, pos, order, rows)
         y = self._run_sets(flat.reshape(-1, self.set_size, flat.shape[1]), sigma)
         if sigma:
-            np.exp(y[..., 3:], out=y[..., 3:])  # numpy's float32 exp, as before (σ̂ = exp(log σ̂) in float32)
-        _from_sets(y.reshape(-1, y.shape[-1]), order, out, rows)
+            np.exp(y[1], out=y[1])  # numpy's float32 exp, as before (σ̂ = exp(log σ̂) in float32)
+        for o in range(len(y)):
+            _from_sets(y[o].reshape(-1, 3), order, out[:, 3 * o : 3 * o + 3], rows)
         return out[:, :3], (out[:, 3:] if sigma else None)
 
     def predict_batch(self, Xq: np.ndarray) -> np.ndarray:
@@ -323,7 +324,7 @@ class ModelSet:
             return out
         order, pos = set_order(p, self.set_size, self.partition_seed)
         flat = _to_sets(Xq, pos, order)  # (Q, S, F): the versions' sets end to end
-        ys = self._run_sets(flat.reshape(-1, self.set_size, f), False)
+        ys = self._run_sets(flat.reshape(-1, self.set_size, f), False)[0]
         _from_sets(ys.reshape(q, -1, 3), order, out)
         return out
 
@@ -332,36 +333,44 @@ class ModelSet:
         max over its n rows); point-wise members predict every row on its own. Rows must be finite. This is how
         ``predict`` predicts each set of its partition, so a set of the partition given here gets exactly the
         published predictions of its points (the explainer relies on it)."""
-        return self._run_sets(np.ascontiguousarray(sets, dtype=np.float32), False).astype(np.float64)
+        return self._run_sets(np.ascontiguousarray(sets, dtype=np.float32), False)[0].astype(np.float64)
 
     def predict_sets_sigma(self, sets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(K, n, F) → (errors (K, n, 3), σ̂ (K, n, 3)) mm, as :meth:`predict_sets`; σ̂ = 1 on the axes of members
         without a spread output."""
         y = self._run_sets(np.ascontiguousarray(sets, dtype=np.float32), True)
-        return y[..., :3].astype(np.float64), np.exp(y[..., 3:]).astype(np.float64)
+        return y[0].astype(np.float64), np.exp(y[1]).astype(np.float64)
 
     def _run_sets(self, sets: np.ndarray, sigma: bool) -> np.ndarray:
-        """Contiguous float32 sets (K, n, F) → float32 (K, n, 3) errors, or with ``sigma`` (K, n, 6): errors and
-        log σ̂ side by side (log σ̂ = 0, σ̂ = 1, on the axes of members without a spread output), both outputs of the
-        same ONNX run. Every member's runs are fed slices of ``sets`` itself (no copy); without ``sigma`` only the
-        error output is asked for."""
+        """Contiguous float32 sets (K, n, F) → float32 (1, K, n, 3) errors, or with ``sigma`` (2, K, n, 3): errors
+        and log σ̂ (log σ̂ = 0, σ̂ = 1, on the axes of members without a spread output), both outputs of the same ONNX
+        run. Every member's runs are fed slices of ``sets`` itself; a set member covering x, y, z writes its outputs
+        straight into the result (ONNX Runtime I/O binding: no copies); without ``sigma`` only the error output is
+        asked for."""
+        if sets.dtype != np.float32 or not sets.flags.c_contiguous:
+            raise ValueError("_run_sets needs C-contiguous float32 sets (the I/O binding reads the buffer)")
         k, n, f = sets.shape
-        y = np.empty((k, n, 6 if sigma else 3), np.float32)
+        y = np.empty((2 if sigma else 1, k, n, 3), np.float32)
         if sigma:
-            y[..., 3:] = 0.0
+            y[1] = 0.0
         for m in self.members:
             want = m.outputs if sigma and m.sigma else m.outputs[:1]
             if m.kind == "points":
-                y.reshape(k * n, -1)[:, m.axes[0]] = m.session.run(want, {"X": sets.reshape(k * n, f)})[0][:, 0]
+                y[0].reshape(k * n, 3)[:, m.axes[0]] = m.session.run(want, {"X": sets.reshape(k * n, f)})[0][:, 0]
                 continue
-            a0, a1 = m.axes[0], m.axes[-1] + 1
-            ax = slice(a0, a1) if m.axes == tuple(range(a0, a1)) else list(m.axes)
-            ax_s = slice(a0 + 3, a1 + 3) if isinstance(ax, slice) else [a + 3 for a in m.axes]
+            if m.axes == (0, 1, 2):
+                io = m.session.io_binding()
+                for i in range(0, k, self.set_chunk):
+                    x = sets[i : i + self.set_chunk]
+                    io.bind_input("X", "cpu", 0, np.float32, x.shape, x.ctypes.data)
+                    for o, name in enumerate(want):
+                        io.bind_output(name, "cpu", 0, np.float32, (len(x), n, 3), y[o, i : i + len(x)].ctypes.data)
+                    m.session.run_with_iobinding(io)
+                continue
             for i in range(0, k, self.set_chunk):
                 res = m.session.run(want, {"X": sets[i : i + self.set_chunk]})
-                y[i : i + self.set_chunk, :, ax] = res[0]
-                if len(res) > 1:
-                    y[i : i + self.set_chunk, :, ax_s] = res[1]
+                for o, r in enumerate(res):
+                    y[o, i : i + self.set_chunk][..., list(m.axes)] = r
         return y
 
     def predict_with_sigma(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -172,5 +172,8 @@ def warm_up() -> None:
     from_sets(g, order, out[:1])
     from_sets(g, order, out, rows)
     from_sets(g[None], order, out[None, :1])
+    wide = np.empty((2, 4))  # the ModelSet writes errors and σ̂ into the two halves of one (M, 6) array
+    from_sets(g, order, wide[:1, 2:])
+    from_sets(g, order, wide[:, 2:], rows)
     for d in (np.zeros(2, np.float32), np.zeros(2)):
         expand_u(out[:, :2], 0.0, np.ones(2), d)
