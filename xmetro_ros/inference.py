@@ -5,6 +5,13 @@ A model set directory holds ``card.json`` and one or more ONNX files; each file 
 * ``kind: "sets"`` (PointNet): input ``X`` (B, n, F) → ``y`` (B, n, A) mm. The points of one call are treated as
   one cloud, partitioned into sets of ``card["set_size"]`` by a permutation seeded with
   ``card["partition_seed"]`` (see :func:`xmetro_ros.learn.pointnet.partition_sets` and ``card["global_feature"]``).
+How a cloud runs (``predict``, ``predict_with_sigma``, ``predict_with_uncertainty``, ``predict_batch``): the finite
+rows are gathered once, straight into set order (:func:`xmetro_ros.pointsets.set_order`, cached by point count),
+ONNX Runtime is fed slices of that contiguous buffer (``set_chunk`` sets per run), both outputs of the spread head
+come from the same run, and the per-slot outputs are read back to point order in one pass (``set_kernels``): the
+same sets and bit for bit the same predictions as the gather/scatter implementation before it
+(test/test_inference_sets.py against test/reference_inference.py).
+
 Features are the card's ``feature_names`` in order, in the units of ``feature_units`` (the study's: mm, deg, ms,
 per mm). Predictions are the systematic error nominal − measured, mm, in the scan frame's axes.
 
@@ -23,20 +30,60 @@ from __future__ import annotations
 import hashlib
 import json
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .pointsets import partition_sets
+from .pointsets import set_order
 from .resources import default_model_dir
+from .set_kernels import expand_u as _expand_u
+from .set_kernels import finite_rows as _finite_rows
+from .set_kernels import from_sets as _from_sets
+from .set_kernels import to_sets as _to_sets
+from .set_kernels import warm_up as _warm_kernels
 
-__all__ = ["AXES", "CARD_FORMAT", "ModelLoadError", "ModelSet", "UncertainPrediction"]
+__all__ = ["AXES", "CARD_FORMAT", "ModelLoadError", "ModelSet", "UncertainPrediction", "session_options"]
 
 CARD_FORMAT = "xmetro-model-set/1"
 AXES = ("x", "y", "z")
-_SET_CHUNK = 128  # sets per ONNX Runtime call: activations stay cache-sized (measured ~2x faster than 1024)
+# Sets per ONNX Runtime run: 32-256 are equally fast, 512 and 1024 10-16 % slower (activations leave the cache);
+# any chunk gives the same bits (bench/bench_uncertainty.py measures and checks both).
+_SET_CHUNK = 128
+
+
+_BLAS: list[Any] = []  # threadpoolctl's controller, made once (it scans the loaded libraries: ~10 ms)
+_BLAS_LOCK = threading.Lock()
+
+
+@contextmanager
+def _one_blas_thread() -> Iterator[None]:
+    """BLAS limited to one thread inside (threadpoolctl). The limit is process-wide and restored on exit: the lock
+    keeps two concurrent callers from restoring each other's limit (the product inside takes ~1 ms)."""
+    with _BLAS_LOCK:
+        if not _BLAS:
+            from threadpoolctl import ThreadpoolController
+
+            _BLAS.append(ThreadpoolController())
+        with _BLAS[0].limit(limits=1, user_api="blas"):
+            yield
+
+
+def session_options(threads: int = 1) -> Any:
+    """ONNX Runtime session options of every model member: ``threads`` intra-op threads, one inter-op thread,
+    sequential execution, all graph optimisations, memory pattern and CPU arena on (ONNX Runtime's defaults; the
+    alternatives measured by bench/bench_uncertainty.py were no faster, see docs/node.md)."""
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = max(1, int(threads))
+    opts.inter_op_num_threads = 1
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    return opts
 
 
 class ModelLoadError(RuntimeError):
@@ -51,6 +98,7 @@ class _Member:
     session: Any
     path: Path
     sigma: bool = False  # the ONNX graph has a second output log_sigma (spread head)
+    outputs: tuple[str, ...] = ()  # the error output first, then log_sigma when there is one
 
 
 @dataclass
@@ -96,6 +144,7 @@ class ModelSet:
         # Feature min/max seen in training (card); the node widens it by its domain_margin (card "margin").
         self.domain: tuple[np.ndarray, np.ndarray] = (lo, hi)
         self.domain_margin = float(dom.get("margin", 0.05)) if dom else 0.0
+        self.set_chunk = _SET_CHUNK
         self._lock = threading.Lock()
         self._mv: tuple[np.ndarray, np.ndarray] | None = None
 
@@ -116,9 +165,7 @@ class ModelSet:
         cls._check_card(card, card_path)
         import onnxruntime as ort
 
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = max(1, int(threads))
-        opts.inter_op_num_threads = 1
+        opts = session_options(threads)
         members: list[Any] = []
         covered: list[int] = []
         for m in card["models"]:
@@ -138,10 +185,13 @@ class ModelSet:
                 )
             axes = tuple(AXES.index(a) for a in m["axes"])
             covered.extend(axes)
-            has_sigma = any(o.name == "log_sigma" for o in sess.get_outputs())
-            members.append(_Member(m["family"], m["kind"], axes, sess, p, has_sigma))
+            names = [o.name for o in sess.get_outputs()]
+            has_sigma = "log_sigma" in names
+            outputs = (names[0], "log_sigma") if has_sigma and names[0] != "log_sigma" else (names[0],)
+            members.append(_Member(m["family"], m["kind"], axes, sess, p, has_sigma, outputs))
         if sorted(covered) != [0, 1, 2]:
             raise ModelLoadError(f"{card_path}: the models must cover each of the axes x, y, z exactly once")
+        _warm_kernels()  # compile or load the row kernels now, not on the first scan (once per process)
         return cls(d, card, members)
 
     @staticmethod
@@ -208,7 +258,11 @@ class ModelSet:
             w = np.asarray(dom["whiten"], np.float64) / float(dom["threshold"])
             self._mv = (w.astype(np.float32), (np.asarray(dom["mean"], np.float64) @ w).astype(np.float32))
         w, b = self._mv
-        z = np.asarray(X, np.float32) @ w
+        # One BLAS thread: OpenBLAS splits this small (M, F) × (F, F) product over its threads, which on the shared
+        # 2-core machine (the node runs with OPENBLAS_NUM_THREADS=2) took 20-100 ms instead of ~1 ms; the result
+        # is the same bits (each output is the same dot product whatever the split; test_inference_sets.py).
+        with _one_blas_thread():
+            z = np.asarray(X, np.float32) @ w
         z -= b
         return np.sqrt(np.einsum("ij,ij->i", z, z))
 
@@ -237,14 +291,28 @@ class ModelSet:
 
         Rows with a non-finite feature get NaN (they are also kept out of every PointNet set).
         """
-        X = self._check_X(X)
-        ok = np.all(np.isfinite(X), axis=1)
-        if ok.all():
-            return self.predict_batch(X[None])[0]
-        out = np.full((len(X), 3), np.nan)
-        if ok.any():
-            out[ok] = self.predict_batch(X[ok][None])[0]
-        return out
+        return self._predict_cloud(self._check_X(X), sigma=False)[0]
+
+    def _predict_cloud(self, X: np.ndarray, sigma: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """(errors (M, 3), σ̂ (M, 3) or None) float64 mm for the float32 rows X of one cloud; NaN rows for
+        non-finite features. One pass copying the finite rows straight into set order (the cached partition of their
+        count), the ONNX runs on contiguous slices of that buffer, one pass writing the per-slot outputs back in point
+        order: no (M, F) intermediate copies, and error and σ̂ come from the same ONNX run."""
+        m = len(X)
+        rows = _finite_rows(X)  # None: every row finite
+        p = m if rows is None else len(rows)
+        # every row is written when all are finite; NaN rows otherwise
+        out = np.empty((m, 6 if sigma else 3)) if rows is None else np.full((m, 6 if sigma else 3), np.nan)
+        if p == 0:
+            return out[:, :3], (out[:, 3:] if sigma else None)
+        order, pos = set_order(p, self.set_size, self.partition_seed)
+        flat = _to_sets(X, pos, order, rows)
+        y = self._run_sets(flat.reshape(-1, self.set_size, flat.shape[1]), sigma)
+        if sigma:
+            np.exp(y[1], out=y[1])  # numpy's float32 exp, as before (σ̂ = exp(log σ̂) in float32)
+        for o in range(len(y)):
+            _from_sets(y[o].reshape(-1, 3), order, out[:, 3 * o : 3 * o + 3], rows)
+        return out[:, :3], (out[:, 3:] if sigma else None)
 
     def predict_batch(self, Xq: np.ndarray, output: str = "error") -> np.ndarray:
         """(Q, P, F) → (Q, P, 3): Q versions of the same P-point cloud, each predicted as ``predict`` would
@@ -255,11 +323,15 @@ class ModelSet:
         out = np.empty((q, p, 3))
         if p == 0:
             return out
-        idx, _ = partition_sets(p, self.set_size, self.partition_seed)
-        sets = Xq[:, idx].reshape(-1, self.set_size, f)  # (Q*K, n, F); point-wise members ignore the grouping
-        ys = self.predict_sets(sets) if output == "error" else self.predict_sets_uncertainty(sets)
-        # Real entries are the first p of each version's flattened sets (only the last set is padded).
-        out[:, idx.reshape(-1)[:p]] = ys.reshape(q, -1, 3)[:, :p]
+        order, pos = set_order(p, self.set_size, self.partition_seed)
+        flat = _to_sets(Xq, pos, order)  # (Q, S, F): the versions' sets end to end
+        sets = flat.reshape(-1, self.set_size, f)
+        if output == "error":
+            ys = self._run_sets(sets, False)[0]
+        else:  # U as predict_with_uncertainty computes it, from the same run's log σ̂
+            y = self._run_sets(sets, True)
+            ys, _ = self._expand(np.exp(y[1]).astype(np.float64).reshape(-1, 3), sets.reshape(-1, f))
+        _from_sets(ys.reshape(q, -1, 3), order, out)
         return out
 
     def predict_sets(self, sets: np.ndarray) -> np.ndarray:
@@ -267,66 +339,52 @@ class ModelSet:
         max over its n rows); point-wise members predict every row on its own. Rows must be finite. This is how
         ``predict`` predicts each set of its partition, so a set of the partition given here gets exactly the
         published predictions of its points (the explainer relies on it)."""
-        sets = np.asarray(sets, dtype=np.float32)
-        k, n, f = sets.shape
-        out = np.empty((k, n, 3))
-        for m in self.members:
-            if m.kind == "points":
-                out[:, :, m.axes[0]] = m.session.run(None, {"X": sets.reshape(k * n, f)})[0].reshape(k, n)
-                continue
-            ys = np.empty((k, n, len(m.axes)), np.float32)
-            for i in range(0, k, _SET_CHUNK):
-                ys[i : i + _SET_CHUNK] = m.session.run(None, {"X": sets[i : i + _SET_CHUNK]})[0]
-            out[:, :, list(m.axes)] = ys
-        return out
+        return self._run_sets(np.ascontiguousarray(sets, dtype=np.float32), False)[0].astype(np.float64)
 
     def predict_sets_sigma(self, sets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(K, n, F) → (errors (K, n, 3), σ̂ (K, n, 3)) mm, as :meth:`predict_sets`; σ̂ = 1 on the axes of members
         without a spread output."""
-        sets = np.asarray(sets, dtype=np.float32)
+        y = self._run_sets(np.ascontiguousarray(sets, dtype=np.float32), True)
+        return y[0].astype(np.float64), np.exp(y[1]).astype(np.float64)
+
+    def _run_sets(self, sets: np.ndarray, sigma: bool) -> np.ndarray:
+        """Contiguous float32 sets (K, n, F) → float32 (1, K, n, 3) errors, or with ``sigma`` (2, K, n, 3): errors
+        and log σ̂ (log σ̂ = 0, σ̂ = 1, on the axes of members without a spread output), both outputs of the same ONNX
+        run. Every member's runs are fed slices of ``sets`` itself; a set member covering x, y, z writes its outputs
+        straight into the result (ONNX Runtime I/O binding: no copies); without ``sigma`` only the error output is
+        asked for."""
+        if sets.dtype != np.float32 or not sets.flags.c_contiguous:
+            raise ValueError("_run_sets needs C-contiguous float32 sets (the I/O binding reads the buffer)")
         k, n, f = sets.shape
-        out = np.empty((k, n, 3))
-        sig = np.ones((k, n, 3))
+        y = np.empty((2 if sigma else 1, k, n, 3), np.float32)
+        if sigma:
+            y[1] = 0.0
         for m in self.members:
+            want = m.outputs if sigma and m.sigma else m.outputs[:1]
             if m.kind == "points":
-                out[:, :, m.axes[0]] = m.session.run(None, {"X": sets.reshape(k * n, f)})[0].reshape(k, n)
+                y[0].reshape(k * n, 3)[:, m.axes[0]] = m.session.run(want, {"X": sets.reshape(k * n, f)})[0][:, 0]
                 continue
-            ys = np.empty((k, n, len(m.axes)), np.float32)
-            ss = np.empty((k, n, len(m.axes)), np.float32)
-            for i in range(0, k, _SET_CHUNK):
-                res = m.session.run(None, {"X": sets[i : i + _SET_CHUNK]})
-                ys[i : i + _SET_CHUNK] = res[0]
-                if m.sigma:
-                    ss[i : i + _SET_CHUNK] = res[1]
-            out[:, :, list(m.axes)] = ys
-            if m.sigma:
-                sig[:, :, list(m.axes)] = np.exp(ss)
-        return out, sig
+            if m.axes == (0, 1, 2):
+                io = m.session.io_binding()
+                for i in range(0, k, self.set_chunk):
+                    x = sets[i : i + self.set_chunk]
+                    io.bind_input("X", "cpu", 0, np.float32, x.shape, x.ctypes.data)
+                    for o, name in enumerate(want):
+                        io.bind_output(name, "cpu", 0, np.float32, (len(x), n, 3), y[o, i : i + len(x)].ctypes.data)
+                    m.session.run_with_iobinding(io)
+                continue
+            for i in range(0, k, self.set_chunk):
+                res = m.session.run(want, {"X": sets[i : i + self.set_chunk]})
+                for o, r in enumerate(res):
+                    y[o, i : i + self.set_chunk][..., list(m.axes)] = r
+        return y
 
     def predict_with_sigma(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(errors (M, 3), σ̂ (M, 3)) mm for the rows of ONE cloud, with the set partition of :meth:`predict`
-        (same errors); NaN rows for non-finite features."""
-        X = self._check_X(X)
-        ok = np.all(np.isfinite(X), axis=1)
-        p = int(ok.sum())
-        if p == len(X):
-            return self._predict_sigma_finite(X)
-        err = np.full((len(X), 3), np.nan)
-        sig = np.full((len(X), 3), np.nan)
-        if p:
-            err[ok], sig[ok] = self._predict_sigma_finite(X[ok])
+        (same errors, from the same ONNX run as σ̂); NaN rows for non-finite features."""
+        err, sig = self._predict_cloud(self._check_X(X), sigma=True)
+        assert sig is not None
         return err, sig
-
-    def _predict_sigma_finite(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        p = len(X)
-        if p == 0:
-            return np.empty((0, 3)), np.empty((0, 3))
-        idx, _ = partition_sets(p, self.set_size, self.partition_seed)
-        e, s = self.predict_sets_sigma(X[idx])
-        # One scatter of both outputs side by side (measured: two fancy-index scatters cost ~10 ms on 180k).
-        both = np.empty((p, 6))
-        both[idx.reshape(-1)[:p]] = np.concatenate([e, s], axis=-1).reshape(-1, 6)[:p]
-        return both[:, :3], both[:, 3:]
 
     @property
     def calibrated(self) -> bool:
@@ -339,13 +397,9 @@ class ModelSet:
             raise ModelLoadError(f"model set {self.id!r} has no uncertainty calibration (card 'uncertainty')")
         mult = np.asarray(self.card["uncertainty"]["multiplier"], np.float64)
         dist = self.domain_distance(X)
-        with np.errstate(invalid="ignore"):
-            widen = np.where(dist > 1.0, dist, 1.0)  # NaN distance (no domain_mv) → no widening
         floor = float(self.card["uncertainty"].get("sigma_floor_mm", 0.0))
-        U = sig + floor
-        U *= mult
-        U *= widen[:, None]
-        return U, dist
+        # (σ̂ + floor) × mult × max(1, distance), in that order (NaN distance: no widening), one compiled pass
+        return _expand_u(np.asarray(sig, np.float64), floor, mult, dist), dist
 
     def predict_sets_uncertainty(self, sets: np.ndarray) -> np.ndarray:
         """(K, n, F) → U (K, n, 3) mm of each set's rows predicted as one PointNet set (as :meth:`predict_sets`);

@@ -1,0 +1,123 @@
+"""The set inference of ``ModelSet`` as it was before issue 13 (gather ``X[idx]`` of the (M, F) rows into set
+order, a float64 scatter back, error and σ̂ from the same ONNX runs, chunks of 128 sets), kept verbatim as the
+reference the contiguous implementation must reproduce bit for bit (test/test_inference_sets.py) and as the
+"before" of bench/bench_uncertainty.py. Functions of a loaded ``ModelSet`` (its sessions and card)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from xmetro_ros.pointsets import partition_sets
+
+SET_CHUNK = 128
+
+
+def predict_sets(ms, sets: np.ndarray) -> np.ndarray:
+    sets = np.asarray(sets, dtype=np.float32)
+    k, n, f = sets.shape
+    out = np.empty((k, n, 3))
+    for m in ms.members:
+        if m.kind == "points":
+            out[:, :, m.axes[0]] = m.session.run(None, {"X": sets.reshape(k * n, f)})[0].reshape(k, n)
+            continue
+        ys = np.empty((k, n, len(m.axes)), np.float32)
+        for i in range(0, k, SET_CHUNK):
+            ys[i : i + SET_CHUNK] = m.session.run(None, {"X": sets[i : i + SET_CHUNK]})[0]
+        out[:, :, list(m.axes)] = ys
+    return out
+
+
+def predict_batch(ms, Xq: np.ndarray) -> np.ndarray:
+    Xq = np.asarray(Xq, dtype=np.float32)
+    q, p, f = Xq.shape
+    out = np.empty((q, p, 3))
+    if p == 0:
+        return out
+    idx, _ = partition_sets(p, ms.set_size, ms.partition_seed)
+    sets = Xq[:, idx].reshape(-1, ms.set_size, f)
+    ys = predict_sets(ms, sets)
+    out[:, idx.reshape(-1)[:p]] = ys.reshape(q, -1, 3)[:, :p]
+    return out
+
+
+def predict(ms, X: np.ndarray) -> np.ndarray:
+    X = np.asarray(X, dtype=np.float32)
+    ok = np.all(np.isfinite(X), axis=1)
+    if ok.all():
+        return predict_batch(ms, X[None])[0]
+    out = np.full((len(X), 3), np.nan)
+    if ok.any():
+        out[ok] = predict_batch(ms, X[ok][None])[0]
+    return out
+
+
+def predict_sets_sigma(ms, sets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    sets = np.asarray(sets, dtype=np.float32)
+    k, n, f = sets.shape
+    out = np.empty((k, n, 3))
+    sig = np.ones((k, n, 3))
+    for m in ms.members:
+        if m.kind == "points":
+            out[:, :, m.axes[0]] = m.session.run(None, {"X": sets.reshape(k * n, f)})[0].reshape(k, n)
+            continue
+        ys = np.empty((k, n, len(m.axes)), np.float32)
+        ss = np.empty((k, n, len(m.axes)), np.float32)
+        for i in range(0, k, SET_CHUNK):
+            res = m.session.run(None, {"X": sets[i : i + SET_CHUNK]})
+            ys[i : i + SET_CHUNK] = res[0]
+            if m.sigma:
+                ss[i : i + SET_CHUNK] = res[1]
+        out[:, :, list(m.axes)] = ys
+        if m.sigma:
+            sig[:, :, list(m.axes)] = np.exp(ss)
+    return out, sig
+
+
+def _predict_sigma_finite(ms, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    p = len(X)
+    if p == 0:
+        return np.empty((0, 3)), np.empty((0, 3))
+    idx, _ = partition_sets(p, ms.set_size, ms.partition_seed)
+    e, s = predict_sets_sigma(ms, X[idx])
+    both = np.empty((p, 6))
+    both[idx.reshape(-1)[:p]] = np.concatenate([e, s], axis=-1).reshape(-1, 6)[:p]
+    return both[:, :3], both[:, 3:]
+
+
+def predict_with_sigma(ms, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    X = np.asarray(X, dtype=np.float32)
+    ok = np.all(np.isfinite(X), axis=1)
+    p = int(ok.sum())
+    if p == len(X):
+        return _predict_sigma_finite(ms, X)
+    err = np.full((len(X), 3), np.nan)
+    sig = np.full((len(X), 3), np.nan)
+    if p:
+        err[ok], sig[ok] = _predict_sigma_finite(ms, X[ok])
+    return err, sig
+
+
+def domain_distance(ms, X: np.ndarray) -> np.ndarray:
+    dom = ms.card.get("domain_mv")
+    if not dom:
+        return np.full(len(X), np.nan)
+    w = np.asarray(dom["whiten"], np.float64) / float(dom["threshold"])
+    w, b = w.astype(np.float32), (np.asarray(dom["mean"], np.float64) @ w).astype(np.float32)
+    z = np.asarray(X, np.float32) @ w
+    z -= b
+    return np.sqrt(np.einsum("ij,ij->i", z, z))
+
+
+def predict_with_uncertainty(ms, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(errors, U, sigma, domain_distance) as ``ModelSet.predict_with_uncertainty`` computed them."""
+    X = np.asarray(X, dtype=np.float32)
+    err, sig = predict_with_sigma(ms, X)
+    mult = np.asarray(ms.card["uncertainty"]["multiplier"], np.float64)
+    dist = domain_distance(ms, X)
+    with np.errstate(invalid="ignore"):
+        widen = np.where(dist > 1.0, dist, 1.0)
+    floor = float(ms.card["uncertainty"].get("sigma_floor_mm", 0.0))
+    U = sig + floor
+    U *= mult
+    U *= widen[:, None]
+    return err, U, sig, dist

@@ -1,0 +1,209 @@
+"""Contiguous PointNet sets (issue 13): ``ModelSet`` gathers the finite rows straight into set order, runs ONNX
+Runtime on slices of that buffer and reads the outputs back by the cached partition. Its outputs must be those of
+the implementation before (test/reference_inference.py, kept verbatim): bit-identical errors and σ̂ on clouds of
+several sizes (a last set padded or not, one point, NaN and inf rows), through every entry point; error and σ̂ from
+the same ONNX runs; the domain distance to float32 rounding."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import reference_inference as ref
+from test_learn_synth import NAMES, synth_table
+from threadpoolctl import threadpool_limits
+
+from xmetro_ros.inference import ModelSet
+from xmetro_ros.learn.families import get_profile
+from xmetro_ros.learn.train import export_model_set, fit_model
+from xmetro_ros.pointsets import partition_sets, set_order
+
+SIZES = (1, 49, 50, 51, 137, 6400, 6449)  # 6400 = 128 sets: one full ONNX chunk; others pad the last set
+
+
+@pytest.fixture(scope="module")
+def default():
+    return ModelSet.load()
+
+
+@pytest.fixture(scope="module")
+def features(default):
+    """Rows spread around the default model's training mean (some outside its domain), float32."""
+    rng = np.random.default_rng(5)
+    lo, hi = default.domain
+    return (lo + (hi - lo) * rng.uniform(-0.1, 1.1, size=(max(SIZES), len(lo)))).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def dt_set(tmp_path_factory):
+    """A model set of point-wise members (one decision tree per axis)."""
+    t = synth_table(n_clouds=3, n_pts=200, seed=2)
+    dts = [fit_model("dt", t.X, t.y[:, a], seed=0, profile=get_profile("micro"), axes=(a,), params={"max_depth": 5})
+           for a in range(3)]
+    d = export_model_set(dts, tmp_path_factory.mktemp("dt") / "dt", feature_names=NAMES, X_train=t.X,
+                         model_id="test-dt-sets")
+    return ModelSet.load(d), t.X.astype(np.float32)
+
+
+def _with_bad_rows(X: np.ndarray, seed: int) -> np.ndarray:
+    X = X.copy()
+    rng = np.random.default_rng(seed)
+    bad = rng.choice(len(X), size=max(1, len(X) // 7), replace=False)
+    X[bad[::2], rng.integers(X.shape[1])] = np.nan
+    X[bad[1::2], 0] = np.inf
+    return X
+
+
+@pytest.mark.parametrize("n", SIZES)
+def test_set_order_is_the_partition(n):
+    idx, real = partition_sets(n, 50, 0)
+    order, pos = set_order(n, 50, 0)
+    np.testing.assert_array_equal(order, idx.reshape(-1))
+    np.testing.assert_array_equal(order[pos], np.arange(n))  # every point read back from its real entry
+    assert np.all(real.reshape(-1)[pos])
+    assert set_order(n, 50, 0)[0] is order  # cached
+    with pytest.raises(ValueError):
+        order[0] = 1  # read-only: a cached partition cannot be changed by a caller
+
+
+@pytest.mark.parametrize("n", SIZES)
+def test_predict_and_sigma_identical_to_reference(default, features, n):
+    for X in (features[:n], _with_bad_rows(features[:n], n)):
+        got = default.predict(X)
+        want = ref.predict(default, X)
+        assert np.array_equal(got, want, equal_nan=True)
+        e, s = default.predict_with_sigma(X)
+        re, rs = ref.predict_with_sigma(default, X)
+        assert np.array_equal(e, re, equal_nan=True) and np.array_equal(s, rs, equal_nan=True)
+        assert np.array_equal(e, got, equal_nan=True)
+        assert np.isnan(got).any() == (not np.all(np.isfinite(X)))
+
+        u = default.predict_with_uncertainty(X)
+        # The reference's domain GEMM with one BLAS thread, as ModelSet now always computes it (OpenBLAS's split
+        # over threads can change the last bit of a distance: seen at 6449 rows with 2 threads).
+        with threadpool_limits(1, user_api="blas"):
+            r_err, r_U, r_sig, r_dist = ref.predict_with_uncertainty(default, X)
+        for got_, want_ in ((u.errors, r_err), (u.sigma, r_sig), (u.U, r_U), (u.domain_distance, r_dist)):
+            assert np.array_equal(got_, want_, equal_nan=True)
+        np.testing.assert_array_equal(u.out_of_domain, default.out_of_domain_mv(X, r_dist))
+
+
+def test_all_rows_nonfinite_and_empty(default, features):
+    X = features[:10].copy()
+    X[:, 3] = np.nan
+    assert np.isnan(default.predict(X)).all()
+    e, s = default.predict_with_sigma(X)
+    assert e.shape == s.shape == (10, 3) and np.isnan(e).all() and np.isnan(s).all()
+    assert default.predict(features[:0]).shape == (0, 3)
+    assert default.predict_with_uncertainty(features[:0]).U.shape == (0, 3)
+
+
+def test_batch_and_sets_identical_to_reference(default, features, dt_set):
+    X = features[:137]
+    Xq = np.stack([X, X[::-1], X * np.float32(1.01)])
+    assert np.array_equal(default.predict_batch(Xq), ref.predict_batch(default, Xq))
+    np.testing.assert_array_equal(default.predict_batch(Xq)[0], default.predict(X))
+    idx, _ = partition_sets(137, 50, 0)
+    sets = X[idx]
+    assert np.array_equal(default.predict_sets(sets), ref.predict_sets(default, sets))
+    e, s = default.predict_sets_sigma(sets)
+    re, rs = ref.predict_sets_sigma(default, sets)
+    assert np.array_equal(e, re) and np.array_equal(s, rs)
+    # non-contiguous input and a set size other than the card's
+    odd = np.asarray(X[: 3 * 7].reshape(3, 7, -1)[:, ::2], np.float64)
+    assert np.array_equal(default.predict_sets(odd), ref.predict_sets(default, odd))
+
+    ms, Xd = dt_set  # point-wise members
+    for n in (1, 51, 600):
+        Xn = _with_bad_rows(Xd[:n], n)
+        assert np.array_equal(ms.predict(Xn), ref.predict(ms, Xn), equal_nan=True)
+        e, s = ms.predict_with_sigma(Xn)
+        re, rs = ref.predict_with_sigma(ms, Xn)
+        assert np.array_equal(e, re, equal_nan=True) and np.array_equal(s, rs, equal_nan=True)
+    Xq = np.stack([Xd[:60], Xd[60:120]])
+    assert np.array_equal(ms.predict_batch(Xq), ref.predict_batch(ms, Xq))
+
+
+class _Binding:
+    """An ONNX Runtime I/O binding that remembers the outputs bound since the last run."""
+
+    def __init__(self, b) -> None:
+        self.b = b
+        self.names: dict[str, None] = {}
+
+    def bind_output(self, name, *args):
+        self.names[name] = None
+        return self.b.bind_output(name, *args)
+
+    def __getattr__(self, name):
+        return getattr(self.b, name)
+
+
+class _Counting:
+    """An ONNX Runtime session that records the outputs asked for in each run (plain or I/O-bound)."""
+
+    def __init__(self, sess) -> None:
+        self.sess = sess
+        self.calls: list[tuple[str, ...]] = []
+
+    def run(self, outputs, feed):
+        self.calls.append(tuple(outputs) if outputs is not None else ("<all>",))
+        return self.sess.run(outputs, feed)
+
+    def io_binding(self):
+        return _Binding(self.sess.io_binding())
+
+    def run_with_iobinding(self, io):
+        self.calls.append(tuple(io.names))
+        io.names = {}
+        return self.sess.run_with_iobinding(io.b)
+
+    def __getattr__(self, name):
+        return getattr(self.sess, name)
+
+
+def test_error_and_sigma_come_from_one_run(features):
+    ms = ModelSet.load()
+    (m,) = ms.members
+    assert m.sigma and m.outputs == ("y", "log_sigma")
+    m.session = counting = _Counting(m.session)
+    n = len(features)
+    n_sets = -(-n // ms.set_size)
+    n_runs = -(-n_sets // ms.set_chunk)
+    ms.predict_with_uncertainty(features)
+    assert counting.calls == [("y", "log_sigma")] * n_runs  # one run per chunk gives both outputs
+    counting.calls.clear()
+    ms.predict(features)
+    assert counting.calls == [("y",)] * n_runs
+
+
+def test_domain_distance_matches_float64(default, features):
+    """The float32 GEMM's distances against a float64 computation: float32 rounding (of the features' scale)."""
+    dom = default.card["domain_mv"]
+    X = _with_bad_rows(features, 3)
+    z = (X.astype(np.float64) - np.asarray(dom["mean"])) @ np.asarray(dom["whiten"])
+    want = np.sqrt(np.einsum("ij,ij->i", z, z)) / float(dom["threshold"])
+    got = default.domain_distance(X)
+    assert got.dtype == np.float32
+    assert np.isnan(got[np.isnan(X).any(axis=1)]).all()
+    fin = np.all(np.isfinite(X), axis=1)
+    np.testing.assert_allclose(got[fin], want[fin], rtol=1e-4, atol=1e-5)
+
+
+def test_domain_distance_leaves_blas_threads_as_they_were(default, features):
+    """The GEMM runs on one BLAS thread; the caller's setting is restored, also with concurrent callers."""
+    import threading
+
+    from threadpoolctl import threadpool_info
+
+    def blas_threads() -> list[int]:
+        return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+
+    with threadpool_limits(2, user_api="blas"):
+        before = blas_threads()
+        ts = [threading.Thread(target=lambda: [default.domain_distance(features) for _ in range(5)])
+              for _ in range(3)]
+        for t in ts:
+            t.start()
+        for t in ts:
+            t.join()
+        assert blas_threads() == before

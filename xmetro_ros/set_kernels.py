@@ -1,0 +1,179 @@
+"""Compiled (numba) row moves around the ONNX call of :class:`xmetro_ros.inference.ModelSet`: the finite-row test,
+the feature rows into PointNet set order, and the per-slot predictions back to point order.
+
+Why compiled: numpy needs a boolean (M, F) temporary and a reduction for the finite test, a fancy-index gather
+(random reads) into set order, and a fancy-index scatter plus a separate float32 → float64 conversion (and a NaN-row
+scatter) for the way back; each kernel here is one pass over the rows. They only copy and convert (float32 →
+float64 is exact), so predictions are bit-identical to a numpy gather/scatter (test/test_inference_sets.py).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+__all__ = ["expand_u", "finite_rows", "from_sets", "to_sets", "warm_up"]
+
+_JIT = {"cache": True, "nogil": True}
+
+
+@njit(**_JIT)
+def _nonfinite_count(X: np.ndarray) -> int:
+    bad = 0
+    for i in range(X.shape[0]):
+        for j in range(X.shape[1]):
+            v = X[i, j]
+            if not np.isfinite(v):
+                bad += 1
+                break
+    return bad
+
+
+@njit(**_JIT)
+def _finite_index(X: np.ndarray, n_ok: int) -> np.ndarray:
+    rows = np.empty(n_ok, np.int64)
+    k = 0
+    for i in range(X.shape[0]):
+        ok = True
+        for j in range(X.shape[1]):
+            if not np.isfinite(X[i, j]):
+                ok = False
+                break
+        if ok:
+            rows[k] = i
+            k += 1
+    return rows
+
+
+def finite_rows(X: np.ndarray) -> np.ndarray | None:
+    """Indices (int64, ascending) of the rows of X (M, F) with every feature finite; None when all are."""
+    bad = _nonfinite_count(X)
+    if bad == 0:
+        return None
+    return _finite_index(X, X.shape[0] - bad)
+
+
+# Both directions walk the points in their own order and write to the other side's index (reads sequential, writes
+# random): the store buffer absorbs random writes, random reads stall; measured on 180k rows here (median of 40,
+# loaded machine) 2.0 vs 12.6 ms into set order and 1.2 vs 7.4 ms back.
+
+
+@njit(**_JIT)
+def _to_sets(X: np.ndarray, pos: np.ndarray, order: np.ndarray, out: np.ndarray) -> None:
+    q, p, f = X.shape
+    s_all = order.shape[0]
+    for v in range(q):
+        for i in range(p):
+            d = pos[i]
+            for j in range(f):
+                out[v, d, j] = X[v, i, j]
+        for d in range(p, s_all):  # padding slots: copies of points of the last set
+            r = order[d]
+            for j in range(f):
+                out[v, d, j] = X[v, r, j]
+
+
+@njit(**_JIT)
+def _to_sets_rows(X: np.ndarray, rows: np.ndarray, pos: np.ndarray, order: np.ndarray, out: np.ndarray) -> None:
+    p = rows.shape[0]
+    f = X.shape[1]
+    for i in range(p):
+        d = pos[i]
+        r = rows[i]
+        for j in range(f):
+            out[d, j] = X[r, j]
+    for d in range(p, order.shape[0]):
+        r = rows[order[d]]
+        for j in range(f):
+            out[d, j] = X[r, j]
+
+
+def to_sets(X: np.ndarray, pos: np.ndarray, order: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+    """The sets laid end to end, C-contiguous float32: X (P, F) → (S, F) with row d = X[order[d]] (``rows``: the
+    partition is of the points ``rows`` of X, row d = X[rows[order[d]]]); X (Q, P, F) → (Q, S, F), each version
+    alike. ``order``, ``pos``: :func:`xmetro_ros.pointsets.set_order` of P (of len(rows))."""
+    p = X.shape[-2] if rows is None else len(rows)
+    if len(pos) != p or len(order) < p:
+        raise ValueError(f"to_sets: {p} points but a partition of {len(pos)} in {len(order)} slots")
+    if rows is not None:
+        out = np.empty((len(order), X.shape[1]), np.float32)
+        _to_sets_rows(X, rows, pos, order, out)
+        return out
+    if X.ndim == 2:
+        return to_sets(X[None], pos, order)[0]
+    out = np.empty((X.shape[0], len(order), X.shape[2]), np.float32)
+    _to_sets(X, pos, order, out)
+    return out
+
+
+@njit(**_JIT)
+def _back(y: np.ndarray, order: np.ndarray, out: np.ndarray) -> None:
+    q, p, c = out.shape
+    for v in range(q):
+        for d in range(p):  # the real entries are the first p slots
+            r = order[d]
+            for j in range(c):
+                out[v, r, j] = np.float64(y[v, d, j])
+
+
+@njit(**_JIT)
+def _back_rows(y: np.ndarray, order: np.ndarray, rows: np.ndarray, out: np.ndarray) -> None:
+    for d in range(rows.shape[0]):
+        r = rows[order[d]]
+        for j in range(y.shape[1]):
+            out[r, j] = np.float64(y[d, j])
+
+
+def from_sets(y: np.ndarray, order: np.ndarray, out: np.ndarray, rows: np.ndarray | None = None) -> None:
+    """Per-slot float32 outputs back to point order as float64: out[order[d]] = y[d] for the real slots d < P
+    (``rows``: out[rows[order[d]]], other rows of out untouched); y (S, C) and out (M, C), or y (Q, S, C) and out
+    (Q, P, C) for Q versions."""
+    # the kernels do not check bounds: check the shapes here
+    p = out.shape[-2] if rows is None else len(rows)
+    if (y.shape[-2] != len(order) or p > len(order) or y.shape[-1] != out.shape[-1]
+            or (rows is None and y.ndim != out.ndim)):
+        raise ValueError(f"from_sets: outputs {y.shape}, {len(order)} slots, out {out.shape}: shapes do not match")
+    if rows is not None:
+        _back_rows(y, order, rows, out)
+    elif y.ndim == 2:
+        _back(y[None], order, out[None])
+    else:
+        _back(y, order, out)
+
+
+@njit(**_JIT)
+def _expand_u(sig: np.ndarray, floor: float, mult: np.ndarray, dist: np.ndarray, out: np.ndarray) -> None:
+    for i in range(sig.shape[0]):
+        d = np.float64(dist[i])
+        w = d if d > 1.0 else 1.0  # NaN distance (no multivariate domain) → no widening
+        for j in range(sig.shape[1]):
+            out[i, j] = (sig[i, j] + floor) * mult[j] * w
+
+
+def expand_u(sig: np.ndarray, floor: float, mult: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """U (M, A) float64 = (σ̂ + floor) × multiplier[axis] × max(1, distance), in that order of float64 operations
+    (the numpy expression's: same bits), one pass instead of four (M, A) array operations."""
+    if sig.shape[0] != dist.shape[0] or sig.shape[1] != mult.shape[0]:
+        raise ValueError(f"expand_u: sigma {sig.shape}, multiplier {mult.shape}, distance {dist.shape}")
+    out = np.empty(sig.shape)
+    _expand_u(sig, float(floor), np.asarray(mult, np.float64), dist, out)
+    return out
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the kernels for the types ModelSet uses."""
+    X = np.zeros((2, 2), np.float32)
+    X[1, 0] = np.nan
+    rows = finite_rows(X)
+    order = np.zeros(1, np.int64)
+    g = to_sets(X[:1], order, order)
+    to_sets(X, order, order, rows)
+    out = np.empty((2, 2))
+    from_sets(g, order, out[:1])
+    from_sets(g, order, out, rows)
+    from_sets(g[None], order, out[None, :1])
+    wide = np.empty((2, 4))  # the ModelSet writes errors and σ̂ into the two halves of one (M, 6) array
+    from_sets(g, order, wide[:1, 2:])
+    from_sets(g, order, wide[:, 2:], rows)
+    for d in (np.zeros(2, np.float32), np.zeros(2)):
+        expand_u(out[:, :2], 0.0, np.ones(2), d)
