@@ -345,10 +345,12 @@ def validate_cloud(cloud: PointCloud2, *, require_valid_points: bool = True) -> 
 
 
 def _xyz_fields_of(fields: Sequence[_Field]) -> tuple[_Field, _Field, _Field]:
-    by_name = {f.name: f for f in fields}
+    """The x, y, z columns: fields of count 1 (a count > 1 field ``x`` is the columns x_0.., which may coexist)."""
+    singles = {f.name: f for f in fields if f.count == 1}
+    multis = {f.name: f for f in fields if f.count > 1}
     out = []
     for axis in ("x", "y", "z"):
-        f = by_name.get(axis)
+        f = singles.get(axis, multis.get(axis))
         if f is None:
             names = [f.name for f in fields]
             raise CloudFormatError("MISSING_FIELD", f"cloud has no {axis!r} field (fields: {names})")
@@ -603,19 +605,26 @@ def xyz_fields(
         for i, f in enumerate((fx, fy, fz)):
             xyz[:, i] = _column(cloud, f)
     extras: dict[str, np.ndarray] = {}
-    by_name = {f.name: f for f in fields}
+    # Column names first (count-1 fields, then sub-fields name_k), then count > 1 fields by their own name; names
+    # are unique as columns (checked), but a count > 1 field "a" may coexist with a column "a".
+    singles = {f.name: f for f in fields if f.count == 1}
+    multis = {f.name: f for f in fields if f.count > 1}
     for name in extra:
-        f = by_name.get(name)
-        if f is not None:  # a field (count 1 → (N,), count > 1 → (N, count))
+        f = singles.get(name)
+        if f is not None:
             extras[name] = _as_float(_column(cloud, f))
             continue
         base, _, k = name.rpartition("_")  # a sub-field name_k of a count > 1 field
-        f = by_name.get(base)
+        f = multis.get(base)
         index = int(k) if 0 < len(k) <= 10 and k.isascii() and k.isdigit() else -1
-        if f is None or f.count == 1 or f"{base}_{index}" != name or index >= f.count:
+        if f is not None and f"{base}_{index}" == name and index < f.count:
+            extras[name] = _as_float(_column(cloud, f, index))
+            continue
+        f = multis.get(name)
+        if f is None:
             names = [f.name for f in fields]
             raise CloudFormatError("MISSING_INPUT_FIELD", f"cloud has no field {name!r} (fields: {names})")
-        extras[name] = _as_float(_column(cloud, f, index))
+        extras[name] = _as_float(_column(cloud, f))  # (N, count)
     return xyz, extras
 
 
