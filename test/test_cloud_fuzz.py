@@ -106,7 +106,7 @@ def clouds(draw):
     data = bytearray(draw(st.binary(min_size=size, max_size=size)))
     order = ">" if big else "<"
     # write special floats into float fields at random points, so NaN / Inf / huge finite values are common
-    if size == height * row_step and point_step and row_step >= width * point_step and height * width <= 16:
+    if size == height * row_step and point_step and row_step >= width * point_step and 0 < height * width <= 16:
         for _name, off, dt, count in fields:
             if dt in (7, 8) and count == 1 and draw(st.booleans()):
                 code, sz = STRUCT[dt]
