@@ -9,10 +9,10 @@ Two layers:
 
   * big-endian data is decoded through a big-endian dtype; the message buffer is never modified (upstream swaps the
     bytes of ``cloud.data`` in place, so reading a cloud twice gives garbage);
-  * organized clouds are reshaped to ``(height, width)`` and :func:`create_cloud` maps a 2-D array of shape (H, W)
-    to ``height=H, width=W``, the row-major layout of REP 118 (upstream transposes both);
+  * organized clouds follow upstream ((width, height) reshape); keyword ``row_major=True`` gives (height, width);
   * rows padded beyond ``width * point_step`` (``row_step`` larger) are read correctly;
-  * malformed clouds raise :class:`CloudFormatError` (a ``ValueError``) instead of ``AssertionError``/``KeyError``.
+  * malformed clouds raise :class:`CloudFormatError` (a ``ValueError`` and ``AssertionError``) with a code, never a
+    numpy error or ``KeyError``; every layout check is O(fields) and runs before any allocation (docs/dds.md).
 
 - Fast paths for the node: :func:`xyz_fields` returns x, y, z as an (N, 3) float array (a view of the message
   buffer when x, y, z are consecutive floats of native byte order, as in every cloud we publish) plus named extra
