@@ -22,8 +22,11 @@ $(STAMP): $(SETUP_INPUTS)
 	bash tools/setup.sh
 	@touch $(STAMP)
 
+# ruff (style, likely bugs, docstrings of public API) and mypy (types: our code clean; pyproject.toml lists the
+# third-party packages without type information).
 lint: setup
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/mypy
 
 # pytest's exit code 5 (nothing collected) means a broken suite: it fails like any other error.
 test: setup lint

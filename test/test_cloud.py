@@ -116,10 +116,13 @@ def test_organized_cloud_with_row_padding_and_nan():
     msg = make_cloud(fields, 16, rows, height=2, width=3, pad_row=8)
     assert msg.row_step == 56 and len(msg.data) == 112
     C.validate_cloud(msg)
-    pts = C.read_points(msg, reshape_organized_cloud=True)
+    pts = C.read_points(msg, reshape_organized_cloud=True, row_major=True)
     assert pts.shape == (2, 3)
     assert pts["z"][1].tolist() == [4.0, 5.0, 6.0]
     assert math.isnan(pts["x"][0, 2])
+    # sensor_msgs_py's order: the same point sequence as (width, height)
+    up = C.read_points(msg, reshape_organized_cloud=True)
+    assert up.shape == (3, 2) and up["z"].reshape(-1).tolist()[3:] == [4.0, 5.0, 6.0]
     flat = C.read_points(msg, ["x", "y", "z"], skip_nans=True)
     assert len(flat) == 5 and not np.isnan(flat["z"]).any()
     # xyz: non-contiguous layout → copied in x, y, z order, NaN kept, row padding skipped

@@ -169,3 +169,14 @@ def test_every_package_import_resolves():
             if not exists(name) and not exists(parent):
                 bad.append(f"{path.relative_to(PKG)}:{line} imports {name}")
     assert bad == []
+
+
+def test_lint_runs_mypy_and_mypy_fails_on_a_type_error(tmp_path):
+    """`make lint` runs mypy with the project's configuration, which rejects a type error in our package."""
+    recipe = subprocess.run(["make", "-n", "lint"], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert "ruff check" in recipe.stdout and "mypy" in recipe.stdout, recipe.stdout
+    bad = tmp_path / "xmetro_typo.py"
+    bad.write_text("def f() -> int:\n    return 'not an int'\n")
+    out = subprocess.run([sys.executable, "-m", "mypy", "--config-file", str(ROOT / "pyproject.toml"), str(bad)],
+                         capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert out.returncode != 0 and "Incompatible return value type" in out.stdout, out.stdout

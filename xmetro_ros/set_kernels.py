@@ -9,12 +9,14 @@ float64 is exact), so predictions are bit-identical to a numpy gather/scatter (t
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numba import njit
 
 __all__ = ["expand_u", "finite_rows", "from_sets", "to_sets", "warm_up"]
 
-_JIT = {"cache": True, "nogil": True}
+_JIT: dict[str, Any] = {"cache": True, "nogil": True}
 
 
 @njit(**_JIT)

@@ -105,6 +105,7 @@ def verify_regions(model_dir: Path | None = None, radius_mm: float = 4.0, n_regi
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``xmetro verify-recommend`` to the ``xmetro`` sub-commands."""
     p = subparsers.add_parser("verify-recommend", help="follow the recommendation in the virtual scanner: predicted "
                               "vs re-simulated actual error over 9 regions", description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -117,6 +118,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """``xmetro verify-recommend``: follow the recommendation in the virtual scanner; returns the exit code."""
     kw: dict[str, Any] = {"turn_steps": 1} if args.quick else {}
     rep = verify_regions(args.model, args.radius, max(1, min(args.regions, len(REGIONS))), **kw)
     text = json.dumps(rep, indent=2)

@@ -46,6 +46,8 @@ class FileRecovery:
 
 @dataclass
 class RecoverResult:
+    """What ``recover`` did: per file the messages recovered per topic and what was lost."""
+
     output: Path
     files: list[FileRecovery] = field(default_factory=list)
     metadata_yaml: Path | None = None

@@ -22,7 +22,7 @@ from ..geometry import HeadPose
 from ..msg import ScannerSettings
 from ..scan import Scan
 from ..scanner import ScanSettings, SettingsError
-from .cloud import create_cloud_from_arrays, dtype_from_fields, validate_cloud, xyz_fields
+from .cloud import CloudFormatError, create_cloud_from_arrays, field_names, validate_cloud, xyz_fields
 
 __all__ = [
     "LENGTH_FIELDS",
@@ -199,6 +199,16 @@ def scan_to_cloud(
     return create_cloud_from_arrays(_header(scan, header_stamp), arrays, height=height, width=width)
 
 
+def _to_mm(a: np.ndarray) -> np.ndarray:
+    """Length field m → mm in its own float type, or in float64 when a finite float32 value would overflow (> 3.4e35
+    m), so that decoding never turns a finite value into Inf."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        mm = a * MM_PER_M
+    if a.dtype == np.float32 and np.isinf(mm).sum() != np.isinf(a).sum():
+        mm = a.astype(np.float64) * MM_PER_M
+    return mm
+
+
 def cloud_to_scan(
     msg: PointCloud2,
     settings: ScanSettings,
@@ -217,20 +227,29 @@ def cloud_to_scan(
         scan_kwargs: passed to :class:`Scan` (artifact, meta, ...).
 
     Raises:
-        CloudFormatError: malformed cloud, or a requested extra field is absent (``MISSING_INPUT_FIELD``).
+        CloudFormatError: malformed cloud, or a requested extra field is absent or has count > 1
+            (``MISSING_INPUT_FIELD``); no other exception for any cloud content.
     """
-    validate_cloud(msg, require_valid_points=False)
+    validate_cloud(msg, require_valid_points=False)  # O(fields) layout checks before anything is read
     if extra_fields is None:
-        extra_fields = [k for k in (dtype_from_fields(msg.fields).names or ()) if k not in ("x", "y", "z")]
+        extra_fields = [k for k in field_names(msg) if k not in ("x", "y", "z")]
     xyz, extras = xyz_fields(msg, list(extra_fields))
     h, w = int(msg.height), int(msg.width)
     lead = (h, w) if h > 1 else (h * w,)
-    points = (xyz.astype(np.float64) * MM_PER_M).reshape(*lead, 3)
+    # Values are kept as they are, absurd ones included (3e38 m stays 3e41 mm, finite): judging them is the node's
+    # job. Only float64 beyond ±1.8e305 m overflows to ±Inf in mm (then a non-finite point like any other).
+    with np.errstate(over="ignore"):
+        points = (xyz.astype(np.float64) * MM_PER_M).reshape(*lead, 3)
     fields = {}
     for name, a in extras.items():
         if a.ndim != 1:
-            raise ValueError(f"field {name!r} has count > 1; request its sub-fields {name}_0, ...")
-        a = a * MM_PER_M if name in LENGTH_FIELDS else a.copy()
+            raise CloudFormatError(
+                "MISSING_INPUT_FIELD", f"field {name!r} has count > 1; request its sub-fields {name}_0, ..."
+            )
+        if name in LENGTH_FIELDS:
+            a = _to_mm(a)
+        else:
+            a = a.copy()
         fields[name] = a.reshape(lead)
     return Scan(
         points=points,

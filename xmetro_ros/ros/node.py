@@ -82,6 +82,7 @@ def settings_qos(durability: DurabilityPolicy = DurabilityPolicy.TRANSIENT_LOCAL
 
 
 def output_qos(depth: int = 10) -> QoSProfile:
+    """QoS of the node's publishers: reliable, volatile, keep last ``depth``."""
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.VOLATILE)
 

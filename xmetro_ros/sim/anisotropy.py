@@ -11,6 +11,8 @@ from .effect import Effect, SimContext
 
 
 class Anisotropy(Effect):
+    """Anisotropic response: lateral bias on tilted surfaces and residual lens distortion (``source`` below)."""
+
     name = "anisotropy"
     law = (
         "lateral displacement in the laser plane (perpendicular to the ray, toward head +X): "

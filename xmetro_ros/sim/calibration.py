@@ -70,6 +70,8 @@ def load_atc5_profiles(directory: str | Path) -> list[np.ndarray]:
 
 @dataclass
 class ProfileFit:
+    """A circle fitted to one measured profile and its residual statistics (mm)."""
+
     center: np.ndarray  # (2,) mm
     radius: float  # mm
     residuals: np.ndarray  # (N,) mm, signed radial (positive = outside)

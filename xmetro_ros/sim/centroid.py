@@ -10,6 +10,8 @@ from .effect import Effect, SimContext
 
 
 class CentroidBias(Effect):
+    """Stripe-centroid bias at oblique incidence (``source`` below)."""
+
     name = "centroid"
     law = (
         "beta = tilt of the surface in the triangulation plane (head YZ) relative to the ray, "

@@ -10,6 +10,8 @@ from .effect import Effect, EffectConfigError, SimContext
 
 
 class DepthOfField(Effect):
+    """No return outside the scanner's depth of field (``source`` below)."""
+
     name = "depth_of_field"
     law = "no return where the stand-off r (distance along the laser axis) is outside [near_mm, far_mm]"
     source = "scanner data sheets (measuring range); the study's fixed 90 mm stand-off"

@@ -10,6 +10,8 @@ from .effect import Effect, SimContext
 
 
 class EdgeEffect(Effect):
+    """Range bias near the silhouette of the artifact (``source`` below)."""
+
     name = "edge"
     law = (
         "near the horizon seen from the laser the spot falls partly off the surface and the centroid moves toward "

@@ -10,6 +10,8 @@ from .effect import Effect, SimContext
 
 
 class Exposure(Effect):
+    """Exposure: signal-to-noise gain and saturation bias (``source`` below)."""
+
     name = "exposure"
     law = (
         "stripe amplitude A = cos(inc) * T / T_ref; SNR gain (T / T_ref)^snr_exponent (shot noise); random noise "

@@ -10,6 +10,8 @@ from .effect import Effect, SimContext
 
 
 class Incidence(Effect):
+    """Noise growing with incidence and viewing angles; no return at grazing incidence (``source`` below)."""
+
     name = "incidence"
     law = (
         "signal S = cos(inc) * SNR gain; no return where S < min_signal; depth noise (along the ray) "

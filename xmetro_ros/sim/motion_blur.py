@@ -10,6 +10,8 @@ from .effect import Effect, SimContext
 
 
 class MotionBlur(Effect):
+    """Motion blur: the head moves during the exposure (``source`` below)."""
+
     name = "motion_blur"
     law = (
         "blur b = head speed x exposure (speed = 1 / (direction_density * profile period), period = max(1/rate, "

@@ -10,6 +10,8 @@ from .effect import Effect, EffectConfigError, SimContext
 
 
 class Outliers(Effect):
+    """Spurious returns off the surface, more at grazing incidence (``source`` below)."""
+
     name = "outliers"
     law = (
         "each point becomes a spurious return with probability fraction * (1 + grazing_boost * (1 - cos(inc))); "

@@ -42,6 +42,8 @@ def correlated_field_std(shape: tuple[int, int], sigma_px: tuple[float, float]) 
 
 
 class Speckle(Effect):
+    """Speckle: spatially correlated depth noise (``source`` below)."""
+
     name = "speckle"
     law = (
         "depth noise along the ray, Gaussian, correlated with Gaussian correlation lengths corr_u_mm along the line "

@@ -10,6 +10,8 @@ from .effect import Effect, SimContext
 
 
 class Standoff(Effect):
+    """Range error growing away from the reference stand-off (``source`` below)."""
+
     name = "standoff"
     law = (
         "zeta = (r - r_ref) / (half depth of field); depth bias = linear_mm * zeta + quadratic_mm * zeta^2 "
