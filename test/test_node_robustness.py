@@ -126,7 +126,7 @@ def test_absurd_coordinates_flagged_never_silent_nan(rig):
     assert np.all(flags[absurd] & fl.FLAG_OUT_OF_VOLUME)
     assert np.isnan(np.asarray(f["dx"])[absurd]).all()
     assert q.flag_counts[fl.FLAG_BITS.index(fl.FLAG_OUT_OF_VOLUME)] == n_abs
-    assert list(q.flag_names) == list(fl.FLAG_NAMES) and q.flag_names[-1] == "out_of_volume"
+    assert list(q.flag_names) == list(fl.FLAG_NAMES) and "out_of_volume" in q.flag_names
     finite = np.isfinite(np.asarray(xyz)).all(axis=1)
     assert q.points_valid == int(finite.sum()) - n_abs
     assert np.isfinite(q.mean_abs_error).all() and np.isfinite(q.p95_abs_error).all()
@@ -234,7 +234,9 @@ def test_stress_real_node_process():
     """Bursts, oversize, absurd values, malformed layouts, big count claims against a real ``xmetro_node``."""
     domain = fresh_domain_id() % 100 + 101
     bound_s = 2 * 1.0 + 0.5  # worst answer time: 2 x max_processing_time + diagnostics_period
-    params = {**RELAXED, "max_processing_time": 1.0, "diagnostics_period": 0.5, "max_points": 100_000}
+    # reliable scan QoS: this test counts every scan it sends (the default best-effort one may drop under load)
+    params = {**RELAXED, "max_processing_time": 1.0, "diagnostics_period": 0.5, "max_points": 100_000,
+              "reliability": "reliable"}
     if os.environ.get("XMETRO_TEST_MODEL_DIR"):
         params["model_dir"] = os.environ["XMETRO_TEST_MODEL_DIR"]
     proc = NodeProcess(params=params, domain_id=domain, node_name=NAME).start(timeout=90.0)
