@@ -30,8 +30,8 @@ from xmetro_ros.sim import simulate_scan
 
 TIMEOUT = 60.0
 LEVELS = [(4.0, 2.0, 0.5), (6.0, 3.0, 2.0), (4.0, 3.0, 0.2), (6.0, 2.0, 0.5)]
-N_CAMPAIGN = 16  # scans (2 balls each) published into `xmetro record`
-N_NEW = 4  # new scans (one ball each) judged by the node
+N_CAMPAIGN = 32  # scans (2 balls each) published into `xmetro record`
+N_NEW = 8  # new scans (one ball each) judged by the node
 
 
 def foreign_effects() -> dict:
@@ -184,8 +184,9 @@ def _judge(outputs: Path, truths: list) -> dict:
             "coverage": cov.round(4).tolist()}
 
 
-@pytest.mark.timeout(1500)
-def test_foreign_scanner_recorded_over_dds_calibrated_and_judged_by_a_node(tmp_path):
+@pytest.mark.timeout(900)
+@pytest.mark.parametrize("positions", ["known", "fitted"])
+def test_foreign_scanner_recorded_over_dds_calibrated_and_judged_by_a_node(tmp_path, positions):
     from xmetro_ros.apps.calibrate import calibrate
     from xmetro_ros.apps.replay import replay_bag
     from xmetro_ros.ros.rclpy_util import NodeProcess
@@ -194,13 +195,16 @@ def test_foreign_scanner_recorded_over_dds_calibrated_and_judged_by_a_node(tmp_p
     (tmp_path / "ls-200.yaml").write_text(yaml.safe_dump(sheet))
     scanner = ScannerModel.from_dict(sheet, "ls-200.yaml")
     _publish_campaign(tmp_path / "campaign_rec", scanner)
-    known = {b: {"known": list(CENTRES[b]), "uncertainty_mm": 0.002, "source": "CMM"} for b in CENTRES}
+    if positions == "known":
+        pos = {b: {"known": list(CENTRES[b]), "uncertainty_mm": 0.002, "source": "CMM"} for b in CENTRES}
+    else:  # fitted with the certified size from a guess 1 mm off (the integrator knows roughly where the balls are)
+        pos = {b: {"fit": [c + 1.0 for c in CENTRES[b]]} for b in CENTRES}
     camp = {"format": "xmetro-campaign/1",
             "scanner": {"id": "ls-200", "serial": "SN-7", "description": "ls-200.yaml"},
             "artifacts": [{"id": b, "diameter_mm": 2 * RADIUS, "size_uncertainty_mm": 0.0008, "certificate": f"C-{b}"}
                           for b in CENTRES],
             "recordings": [{"bag": "campaign_rec", "placements": [
-                {"artifact": b, "position": known[b]} for b in CENTRES]}]}
+                {"artifact": b, "position": pos[b]} for b in CENTRES]}]}
     (tmp_path / "campaign.yaml").write_text(yaml.safe_dump(camp, sort_keys=False))
     report = calibrate(tmp_path / "campaign.yaml", tmp_path / "cal", profile="quick", families=("pointnet_multi",))
     assert report["checks"]["n_measurements"] == 2 * N_CAMPAIGN
@@ -215,10 +219,15 @@ def test_foreign_scanner_recorded_over_dds_calibrated_and_judged_by_a_node(tmp_p
         res = replay_bag(tmp_path / "new.mcap", fast=True, record=tmp_path / "outputs.mcap")
         assert len(res.scans) == N_NEW, (res.losses, node.lines[-20:])
     got = _judge(tmp_path / "outputs.mcap", truths)
-    print("node on new recordings:", got)
-    (tmp_path / "e2e.json").write_text(json.dumps(got))
-    # measured figures (see docs/calibration.md, "Acceptance"): asserted at what the quick profile reaches
-    assert got["n_points"] > 1000
-    assert got["ratio"] <= 1.25, got
-    for c in got["coverage"]:
-        assert 0.90 <= c <= 0.99, got
+    print(f"node on new recordings ({positions} positions):", got)
+    assert got["n_points"] > 20_000
+    if positions == "known":
+        # the acceptance (docs/calibration.md, "Acceptance"; measured: ratio 1.12, per axis 1.07-1.17, coverage
+        # 95.2 / 94.5 / 95.7 %)
+        assert got["ratio"] <= 1.25 and max(got["ratio_axes"]) <= 1.25, got
+        for c in got["coverage"]:
+            assert 0.94 <= c <= 0.96, got
+    else:
+        # the documented loss of fitted positions: location errors are not learned, the node cannot predict them
+        # and the intervals (calibrated on fitted-centre targets) miss them
+        assert got["ratio"] > 1.25, got

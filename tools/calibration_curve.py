@@ -2,7 +2,7 @@
 
 Writes ``docs/results/calibration_curve.json`` (table in docs/calibration.md, "Few scans"). Run once::
 
-    .venv/bin/python tools/calibration_curve.py [--seed 0] [--sizes 2,4,8,16]
+    .venv/bin/python tools/calibration_curve.py [--seeds 0,1,2] [--sizes 1,2,4,8,16]
 
 - The foreign scanner: test/test_calibrate.py's data sheet (200 mm stand-off, 20° triangulation, 45° fan,
   camera on −y) with test/test_calibrate_e2e.py's effect magnitudes (centroid and stand-off effects ×2, edge
@@ -69,11 +69,12 @@ def main(argv: list[str] | None = None) -> int:
     from xmetro_ros.sim.campaign import study_campaign
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--sizes", default="2,4,8,16")
+    ap.add_argument("--seeds", default="0,1,2", help="independent repetitions (prior, scans, fits); means reported")
+    ap.add_argument("--sizes", default="1,2,4,8,16")
     ap.add_argument("--out", default=str(ROOT / "docs" / "results" / "calibration_curve.json"))
     args = ap.parse_args(argv)
     sizes = [int(s) for s in args.sizes.split(",")]
+    seeds = [int(s) for s in args.seeds.split(",")]
     t0 = time.perf_counter()
     default = ScannerModel.load().effects
     real = ScannerModel.from_dict({**SHEET, "effects": foreign_effects(default)}, "ls-200 (simulated real)")
@@ -82,33 +83,46 @@ def main(argv: list[str] | None = None) -> int:
     cfg = _pointnet_config("pointnet_multi", prof, threads=1)
     feats = list(STUDY_FEATURES)
 
-    grid = [ScanSettings(a, b, c) for a in (4.0, 5.0, 6.0) for b in (2.0, 2.5, 3.0) for c in (0.2, 0.5, 2.0)]
-    items = study_campaign(scanner=virtual, seed=args.seed + 500, sphere_diameters=(2 * RADIUS,), cylinder=False,
-                           configurations=grid)
-    prior_table = build_table([it.simulate() for it in items], feats, max_points_per_cloud=2000, seed=args.seed,
-                              scanner=virtual)
-    prior = PointNetRegressor(cfg, seed=args.seed).fit(prior_table.X, prior_table.y, prior_table.cloud_id)
-    print(f"prior: {len(items)} virtual clouds, {len(prior_table)} points ({time.perf_counter() - t0:.0f} s)",
-          flush=True)
+    def one(seed: int) -> tuple[list[dict], float, int]:
+        grid = [ScanSettings(a, b, c) for a in (4.0, 5.0, 6.0) for b in (2.0, 2.5, 3.0) for c in (0.2, 0.5, 2.0)]
+        items = study_campaign(scanner=virtual, seed=seed + 500, sphere_diameters=(2 * RADIUS,), cylinder=False,
+                               configurations=grid)
+        prior_table = build_table([it.simulate() for it in items], feats, max_points_per_cloud=2000, seed=seed,
+                                  scanner=virtual)
+        prior = PointNetRegressor(cfg, seed=seed).fit(prior_table.X, prior_table.y, prior_table.cloud_id)
+        print(f"prior: {len(items)} virtual clouds, {len(prior_table)} points ({time.perf_counter() - t0:.0f} s)",
+              flush=True)
 
-    def recorded(k: int, seed: int):
-        return simulate_scan(Sphere(RADIUS, CENTRES[k % 2]), ScanSettings(*LEVELS[(k // 2) % len(LEVELS)]),
-                             scanner=real, seed=seed + k)
+        def recorded(k: int, seed: int):
+            return simulate_scan(Sphere(RADIUS, CENTRES[k % 2]), ScanSettings(*LEVELS[(k // 2) % len(LEVELS)]),
+                                 scanner=real, seed=seed + k)
 
-    pool = [recorded(k, args.seed + 10_000) for k in range(max(sizes))]
-    judge = build_table([recorded(k, args.seed + 20_000) for k in range(8)], feats, max_points_per_cloud=2000,
-                        seed=args.seed + 1, scanner=real)
-    rows: list[dict] = [{"n_scans": 0, "prior_only": _scores(prior, judge)}]
-    print(rows[-1], flush=True)
-    for n in sizes:
-        tab = build_table(pool[:n], feats, max_points_per_cloud=2000, seed=args.seed, scanner=real)
-        scratch = PointNetRegressor(cfg, seed=args.seed).fit(tab.X, tab.y, tab.cloud_id)
-        tuned = PointNetRegressor(cfg, seed=args.seed, warm_start=prior.module_).fit(tab.X, tab.y, tab.cloud_id)
-        rows.append({"n_scans": n, "scratch": _scores(scratch, judge), "virtual_prior": _scores(tuned, judge)})
+        pool = [recorded(k, seed + 10_000) for k in range(max(sizes))]
+        judge = build_table([recorded(k, seed + 20_000) for k in range(8)], feats, max_points_per_cloud=2000,
+                            seed=seed + 1, scanner=real)
+        rows: list[dict] = [{"n_scans": 0, "prior_only": _scores(prior, judge)}]
         print(rows[-1], flush=True)
-    out = {"description": __doc__.split("\n\n")[0], "seed": args.seed, "profile": "quick (pointnet_multi compact)",
-           "epochs": cfg.epochs, "n_prior_clouds": len(items), "n_judged_scans": 8,
-           "oracle_floor_um": round(float(np.abs(judge.oracle - judge.y).mean()) * 1e3, 3), "curve": rows,
+        for n in sizes:
+            tab = build_table(pool[:n], feats, max_points_per_cloud=2000, seed=seed, scanner=real)
+            scratch = PointNetRegressor(cfg, seed=seed).fit(tab.X, tab.y, tab.cloud_id)
+            tuned = PointNetRegressor(cfg, seed=seed, warm_start=prior.module_).fit(tab.X, tab.y, tab.cloud_id)
+            rows.append({"n_scans": n, "scratch": _scores(scratch, judge), "virtual_prior": _scores(tuned, judge)})
+            print(rows[-1], flush=True)
+        return rows, float(np.abs(judge.oracle - judge.y).mean()), len(items)
+
+    runs = {seed: one(seed) for seed in seeds}
+    keys = [("prior_only",)] + [("scratch", "virtual_prior")] * len(sizes)
+    mean_rows = []
+    for i, ks in enumerate(keys):
+        row: dict = {"n_scans": runs[seeds[0]][0][i]["n_scans"]}
+        for k in ks:
+            row[k] = {m: round(float(np.mean([runs[sd][0][i][k][m] for sd in seeds])), 3)
+                      for m in ("mae_um", "ratio_to_floor")}
+        mean_rows.append(row)
+    out = {"description": __doc__.split("\n\n")[0], "seeds": seeds, "profile": "quick (pointnet_multi compact)",
+           "epochs": cfg.epochs, "n_prior_clouds": runs[seeds[0]][2], "n_judged_scans": 8,
+           "oracle_floor_um": round(float(np.mean([r[1] for r in runs.values()])) * 1e3, 3), "curve_mean": mean_rows,
+           "per_seed": {str(sd): r[0] for sd, r in runs.items()},
            "wall_s": round(time.perf_counter() - t0, 1)}
     Path(args.out).write_text(json.dumps(out, indent=1))
     print(f"wrote {args.out} ({out['wall_s']:.0f} s)")

@@ -213,6 +213,9 @@ def _markdown(r: dict[str, Any]) -> str:
             lines.append(f"| {split} | {fam} | " + " | ".join(cells) + " |")
     u = r["uncertainty"]
     lines += ["", "## Interval coverage (95 %) on held-out scans", "", f"Split {u['split']}.", ""]
+    if r["positions"] != "known":
+        lines += ["Positions are fitted: coverage is judged on fitted-centre targets; location errors are in neither "
+                  "the model nor its intervals (docs/calibration.md §7).", ""]
     if not u["families"]:
         lines.append("No uncertainty calibration (too few scans, or --no-uncertainty).")
     else:
