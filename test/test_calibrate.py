@@ -54,7 +54,7 @@ def test_calibrate_a_foreign_scanner_from_driver_recordings(tmp_path):
     sheet = {**SHEET, "effects": ScannerModel.load().effects}
     (tmp_path / "ls-200.yaml").write_text(yaml.safe_dump(sheet))
     scanner = ScannerModel.from_dict(sheet, "ls-200.yaml")
-    _record(tmp_path / "run1.mcap", scanner, 8, seed=10)
+    _record(tmp_path / "run1.mcap", scanner, 12, seed=10)
     camp = {"format": "xmetro-campaign/1",
             "scanner": {"id": "ls-200", "serial": "SN-7", "description": "ls-200.yaml"},
             "artifacts": [{"id": "ball_a", "diameter_mm": 2 * RADIUS, "size_uncertainty_mm": 0.0008,
@@ -70,7 +70,7 @@ def test_calibrate_a_foreign_scanner_from_driver_recordings(tmp_path):
     assert main(["calibrate", str(tmp_path / "campaign.yaml"), "--out", str(out), "--profile", "micro",
                  "--families", "catboost"]) == 0
     report = json.loads((out / "report.json").read_text())
-    assert report["checks"]["n_measurements"] == 16 and report["checks"]["levels_from_campaign"]
+    assert report["checks"]["n_measurements"] == 24 and report["checks"]["levels_from_campaign"]
     assert report["positions"] == "known"
     assert set(report["vdi2634"]["per_settings"]) == {ScanSettings(*v).label() for v in
                                                       [(4.0, 2.0, 0.5), (6.0, 3.0, 2.0), (4.0, 3.0, 0.2),
@@ -81,7 +81,19 @@ def test_calibrate_a_foreign_scanner_from_driver_recordings(tmp_path):
     assert card["scanner"]["id"] == "ls-200" and card["scanner"]["serial"] == "SN-7"
     assert card["campaign"]["sha256"] and card["campaign"]["artifacts"][0]["certificate"] == "C-1"
     assert card["trained_by"].startswith("xmetro calibrate campaign.yaml")
-    # the model learned something real about this scanner (micro profile, 16 measurements): held-out R² clearly
+    # uncertainty: 3 + 3 of the 12 scans held out BY SCAN (both balls of a scan together) for the conformal
+    # calibration and the coverage check; the card carries the calibration and the domain of the training rows
+    held = report["uncertainty"]["held_out"]
+    assert len(held["calibration"]) == 6 and len(held["coverage"]) == 6
+    scans_of = {part: {lab.rsplit(" ", 1)[0] for lab in held[part]} for part in held}
+    assert len(scans_of["calibration"]) == 3 and not scans_of["calibration"] & scans_of["coverage"]
+    assert ms.calibrated and card["domain_mv"]["n_train"] > 0
+    assert card["uncertainty"]["calibration_clouds"] == held["calibration"]
+    cov = report["uncertainty"]["families"]["catboost"]["coverage"]
+    for ax in "xyz":  # constant σ̂ (catboost): coverage on 3 new scans near the nominal 95 %
+        assert 0.85 <= cov[ax]["coverage"] <= 1.0, (ax, cov[ax])
+    assert "Interval coverage (95 %) on held-out scans" in (out / "report.md").read_text()
+    # the model learned something real about this scanner (micro profile, 12 training measurements): held-out R² clearly
     # above zero on every axis, for held-out points and held-out configurations (measured 0.12-0.37)
     for split in ("point", "cloud"):
         for ax in "xyz":

@@ -8,8 +8,14 @@
 3. compute the study's features with the campaign's scanner geometry (not the packaged virtual scanner's), train
    with the study's protocol (point and cloud splits, ``--families``), export model sets whose card records the
    scanner (id, serial), the campaign (hash, artifacts and certificates, positions), the data checks and metrics;
-4. write ``DIR/report.md`` and ``DIR/report.json``: per settings the VDI/VDE 2634-2 probing form / size and sphere
-   spacing figures, the data checks, and the models' accuracy on held-out points and held-out configurations.
+4. give every model set an uncertainty calibration (:mod:`xmetro_ros.learn.uncertainty`): whole SCANS are held out
+   of training BY SCAN (every sphere of a held-out scan goes with it; seeded permutation of the scans):
+   ``CALIBRATION_FRACTION`` of them calibrate the split-conformal multipliers, a further ``COVERAGE_FRACTION``
+   judge the 95 % intervals (coverage per axis); the rest trains. The card also gets the multivariate domain of
+   the training rows (``domain_mv``);
+5. write ``DIR/report.md`` and ``DIR/report.json``: per settings the VDI/VDE 2634-2 probing form / size and sphere
+   spacing figures, the data checks, the models' accuracy on held-out points and held-out configurations, and
+   the interval coverage on the held-out scans.
 
 Lengths in mm in the reports. Exit code 2 on a campaign error, with its message.
 """
@@ -22,7 +28,15 @@ import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["calibrate", "register", "run"]
+import numpy as np
+
+__all__ = ["CALIBRATION_FRACTION", "COVERAGE_FRACTION", "DEFAULT_FAMILIES", "calibrate", "register", "run",
+           "split_scans"]
+
+DEFAULT_FAMILIES = ("pointnet_multi",)  # the node's default family: the one with a spread head (σ̂ per point)
+CALIBRATION_FRACTION = 0.25  # of the scans: conformal calibration clouds (never trained on)
+COVERAGE_FRACTION = 0.25  # of the scans: judge the calibrated intervals (never trained on nor calibrated with)
+MIN_HOLDOUT_SCANS = 2  # per held-out part; below 4 + 2 × this scans in all, no uncertainty calibration
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -34,9 +48,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("campaign", help="campaign file (YAML, format xmetro-campaign/1; see docs/calibration.md)")
     p.add_argument("--out", required=True, help="output directory (models/, report.md, report.json, metrics)")
     p.add_argument("--profile", choices=sorted(PROFILES), default="quick")
-    p.add_argument("--families", default="catboost,pointnet_multi", help="comma-separated model families")
+    p.add_argument("--families", default=",".join(DEFAULT_FAMILIES),
+                   help="comma-separated model families (default: the node's pointnet_multi, which has a spread "
+                   "head; catboost gets a constant σ̂)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--max-points", type=int, default=2000, help="points sampled per measurement")
+    p.add_argument("--no-uncertainty", action="store_true",
+                   help="train on every scan; no conformal calibration nor coverage (the card has no 'uncertainty')")
     p.set_defaults(func=run)
 
 
@@ -46,9 +64,54 @@ def _read(rec: Any, scanner: Any) -> list[Any]:
     return read_scans(rec.bag, topic=rec.scan_topic, settings_topic=rec.settings_topic, scanner=scanner)
 
 
+def split_scans(items: list[Any], seed: int, uncertainty: bool = True) -> dict[str, list[int]]:
+    """Indices into ``items`` (CampaignScan) of the train / calibration / coverage parts, split BY SCAN: the
+    measurements of one scan (every sphere it shows) share a part. Seeded permutation of the scans; each held-out
+    part gets round(fraction × n_scans), at least MIN_HOLDOUT_SCANS; too few scans (or ``uncertainty`` False):
+    every measurement trains."""
+    keys = sorted({(it.recording, it.index) for it in items})
+    n = len(keys)
+    n_cal = max(MIN_HOLDOUT_SCANS, round(CALIBRATION_FRACTION * n))
+    n_cov = max(MIN_HOLDOUT_SCANS, round(COVERAGE_FRACTION * n))
+    if not uncertainty or n - n_cal - n_cov < 4:
+        return {"train": list(range(len(items))), "calibration": [], "coverage": []}
+    perm = [keys[i] for i in np.random.default_rng(seed).permutation(n)]
+    part = {k: "calibration" for k in perm[:n_cal]} | {k: "coverage" for k in perm[n_cal:n_cal + n_cov]}
+    out: dict[str, list[int]] = {"train": [], "calibration": [], "coverage": []}
+    for i, it in enumerate(items):
+        out[part.get((it.recording, it.index), "train")].append(i)
+    return out
+
+
+def _uncertainty(model_dirs: dict[str, Path], train: Any, cal: Any, cov: Any, cal_labels: list[str],
+                 log: Any) -> dict[str, Any]:
+    """Conformal calibration of each model set on the calibration table, multivariate domain of the training rows,
+    interval metrics on the coverage table (per family: the card block and per axis coverage / mean U in mm)."""
+    from ..inference import ModelSet
+    from ..learn.uncertainty import calibrate as conformal
+    from ..learn.uncertainty import fit_domain, interval_metrics, predict_clouds
+
+    out: dict[str, Any] = {}
+    domain = fit_domain(train.X)
+    for fam, d in model_dirs.items():
+        card_path = d / "card.json"
+        card = json.loads(card_path.read_text())
+        card["domain_mv"] = domain
+        card_path.write_text(json.dumps(card, indent=1, sort_keys=True))
+        block = conformal(d, cal.X, cal.y, cal.cloud_id, cloud_labels=cal_labels)
+        pr = predict_clouds(ModelSet.load(d), cov.X, cov.cloud_id)
+        m = interval_metrics(pr["errors"], pr["U"], cov.y)  # recordings carry no simulator truth (oracle std)
+        out[fam] = {"multiplier": block["multiplier"], "calibration_coverage": block["achieved_coverage_calibration"],
+                    "coverage": {ax: {k: v for k, v in m[ax].items() if k != "bins"} for ax in m},
+                    "n_coverage_points": len(cov.X)}
+        log(f"{fam}: multipliers {[round(k, 2) for k in block['multiplier']]}, coverage on held-out scans "
+            + ", ".join(f"{ax} {m[ax].get('coverage', float('nan')):.3f}" for ax in m))
+    return out
+
+
 def calibrate(campaign_path: str | Path, out: str | Path, *, profile: str = "quick",
-              families: tuple[str, ...] = ("catboost", "pointnet_multi"), seed: int = 0, max_points: int = 2000,
-              log: Any = print) -> dict[str, Any]:
+              families: tuple[str, ...] = DEFAULT_FAMILIES, seed: int = 0, max_points: int = 2000,
+              uncertainty: bool = True, log: Any = print) -> dict[str, Any]:
     """Run the whole calibration (module docstring); return the report dict. Raises CampaignError."""
     from .. import vdi2634
     from ..campaign_data import assemble
@@ -66,17 +129,34 @@ def calibrate(campaign_path: str | Path, out: str | Path, *, profile: str = "qui
     log(f"{data.checks.n_measurements} measurements from {data.checks.n_scans_read} scans; settings levels "
         f"{data.checks.settings_levels}")
     fitted = any(it.placement.fitted for it in data.scans)
-    table = build_table([it.scan for it in data.scans], STUDY_FEATURES, max_points_per_cloud=max_points, seed=seed,
-                        scanner=data.scanner)
+    parts = split_scans(data.scans, seed, uncertainty)
+
+    def table_of(part: str) -> Any:
+        return build_table([data.scans[i].scan for i in parts[part]], STUDY_FEATURES, max_points_per_cloud=max_points,
+                           seed=seed, scanner=data.scanner)
+
+    def label(i: int) -> str:
+        it = data.scans[i]
+        return f"recording {it.recording} scan {it.index} {it.placement.artifact}"
+
+    split_doc = {k: [label(i) for i in v] for k, v in parts.items() if k != "train"}
+    if uncertainty and not parts["calibration"]:
+        log(f"too few scans ({data.checks.n_scans_read}) to hold out calibration and coverage scans: no uncertainty "
+            "calibration")
+    table = table_of("train")
     manifest = {"source": "calibration campaign", "campaign": camp.card(), "checks": data.checks.to_dict()}
     card_extra = {
         "scanner": {"id": camp.scanner_id, "serial": camp.scanner_serial, "description": camp.scanner.source},
         "campaign": camp.card(), "data_checks": data.checks.to_dict(),
         "positions": "fitted (location errors removed from the targets)" if fitted else "known",
         "trained_by": f"xmetro calibrate {camp.path.name} --profile {profile} --seed {seed}",
+        "held_out_scans": split_doc,
     }
     metrics = run_study(table, manifest, profile, seed, out, families=families, log=log, timing=False,
                         card_extra=card_extra)
+    model_dirs = {fam: out / "models" / fam for fam in families}
+    unc = (_uncertainty(model_dirs, table, table_of("calibration"), table_of("coverage"),
+                        split_doc["calibration"], log) if parts["calibration"] else {})
     probing_rows = [{"recording": it.recording, "scan": it.index, "artifact": it.placement.artifact,
                      "settings": it.scan.settings.label(), "position": "fitted" if it.placement.fitted else "known",
                      **it.figures.to_dict()} for it in data.scans]
@@ -88,7 +168,10 @@ def calibrate(campaign_path: str | Path, out: str | Path, *, profile: str = "qui
         "vdi2634": {"per_measurement": probing_rows, "spacing": data.spacing,
                     "per_settings": vdi2634.summarize([*probing_rows, *data.spacing])},
         "models": {s: metrics["splits"][s]["models"] for s in metrics["splits"]},
-        "model_dirs": {fam: str(out / "models" / fam) for fam in families},
+        "model_dirs": {fam: str(d) for fam, d in model_dirs.items()},
+        "uncertainty": {"split": "by scan (seeded): " + ", ".join(f"{len(v)} measurements {k}" for k, v in
+                                                                    parts.items()),
+                        "held_out": split_doc, "families": unc},
         "wall_s": round(time.perf_counter() - t0, 1),
     }
     (out / "report.json").write_text(json.dumps(report, indent=2, default=float))
@@ -128,6 +211,22 @@ def _markdown(r: dict[str, Any]) -> str:
         for fam, axes in fams.items():
             cells = [f"{axes[a]['mae']['mean'] * 1e3:.2f} (R² {axes[a]['r2']['mean']:.2f})" for a in ("x", "y", "z")]
             lines.append(f"| {split} | {fam} | " + " | ".join(cells) + " |")
+    u = r["uncertainty"]
+    lines += ["", "## Interval coverage (95 %) on held-out scans", "", f"Split {u['split']}.", ""]
+    if r["positions"] != "known":
+        lines += ["Positions are fitted: coverage is judged on fitted-centre targets; location errors are in neither "
+                  "the model nor its intervals (docs/calibration.md §7).", ""]
+    if not u["families"]:
+        lines.append("No uncertainty calibration (too few scans, or --no-uncertainty).")
+    else:
+        lines += ["| family | multipliers x/y/z | coverage X | Y | Z | mean U X/Y/Z (µm) |",
+                  "|---|---|---|---|---|---|"]
+        for fam, d in u["families"].items():
+            cov = d["coverage"]
+            cells = [f"{cov[a]['coverage'] * 100:.1f} %" if "coverage" in cov[a] else "–" for a in ("x", "y", "z")]
+            us = "/".join(f"{cov[a]['mean_U'] * 1e3:.1f}" if "mean_U" in cov[a] else "–" for a in ("x", "y", "z"))
+            lines.append(f"| {fam} | {'/'.join(f'{k:.2f}' for k in d['multiplier'])} | " + " | ".join(cells)
+                         + f" | {us} |")
     return "\n".join(lines) + "\n"
 
 
@@ -138,7 +237,7 @@ def run(args: argparse.Namespace) -> int:
     fams = tuple(f.strip() for f in args.families.split(",") if f.strip())
     try:
         calibrate(args.campaign, args.out, profile=args.profile, families=fams, seed=args.seed,
-                  max_points=args.max_points)
+                  max_points=args.max_points, uncertainty=not args.no_uncertainty)
     except (CampaignError, ValueError, FileNotFoundError) as e:
         print(f"xmetro calibrate: error: {e}")
         return 2

@@ -133,9 +133,14 @@ class PointNetRegressor:
 
     family = "pointnet"
 
-    def __init__(self, config: PointNetConfig | None = None, seed: int = 0) -> None:
+    def __init__(self, config: PointNetConfig | None = None, seed: int = 0, warm_start: PointNetReg | None = None
+                 ) -> None:
+        """``warm_start``: a fitted network (same features, outputs and layer sizes) that ``fit`` starts from,
+        keeping its input / target normalisation (fine-tuning a prior, e.g. a virtual scanner's model, on few
+        recorded scans); it is copied, never modified."""
         self.config = config or PointNetConfig()
         self.seed = seed
+        self.warm_start = warm_start
         self.module_: PointNetReg | None = None
         self.history_: list[float] = []
 
@@ -156,12 +161,17 @@ class PointNetRegressor:
         prev_threads = torch.get_num_threads()
         torch.set_num_threads(max(1, c.threads))
         try:
-            net = PointNetReg(X.shape[1], c.block1, c.block2, c.head, n_out=y2.shape[1], sigma_head=c.sigma_head)
-            std = X.std(0)
-            net.x_mean.copy_(torch.from_numpy(X.mean(0)))
-            net.x_std.copy_(torch.from_numpy(np.where(std > 1e-12, std, 1.0).astype(np.float32)))
-            ys = np.abs(y2 - np.median(y2, 0)).mean(0)
-            net.y_scale.copy_(torch.from_numpy(np.where(ys > 1e-12, ys, 1.0).astype(np.float32)))
+            if self.warm_start is not None:
+                net = copy.deepcopy(self.warm_start)
+                if net.x_mean.numel() != X.shape[1] or (net.head_sigma is not None) != c.sigma_head:
+                    raise ValueError("PointNet warm start: the network has other features or heads than the data")
+            else:
+                net = PointNetReg(X.shape[1], c.block1, c.block2, c.head, n_out=y2.shape[1], sigma_head=c.sigma_head)
+                std = X.std(0)
+                net.x_mean.copy_(torch.from_numpy(X.mean(0)))
+                net.x_std.copy_(torch.from_numpy(np.where(std > 1e-12, std, 1.0).astype(np.float32)))
+                ys = np.abs(y2 - np.median(y2, 0)).mean(0)
+                net.y_scale.copy_(torch.from_numpy(np.where(ys > 1e-12, ys, 1.0).astype(np.float32)))
             opt = torch.optim.Adam(net.parameters(), lr=c.lr, weight_decay=c.weight_decay)
             sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.5, patience=c.patience)
             Xt, yt = torch.from_numpy(X), torch.from_numpy(y2)
