@@ -254,11 +254,11 @@ def test_bad_inputs_each_reported_and_node_keeps_running(rig):
         # the good scans that follow need valid settings again
         v_t = stamp()
         client.pub_settings.publish(settings_msg(base, v_t))
-        assert wait_for(lambda v_t=v_t: node.core.settings_for(v_t + 1).stamp_ns == v_t, TIMEOUT)
+        assert wait_for(lambda v_t=v_t: getattr(node.core.settings_for(v_t + 1), 'stamp_ns', None) == v_t, TIMEOUT)
         good()
     f_t = stamp()
     client.pub_settings.publish(settings_msg(base, f_t, frame_id="elsewhere"))
-    assert wait_for(lambda: node.core.settings_for(f_t + 1).stamp_ns == f_t, TIMEOUT)
+    assert wait_for(lambda: getattr(node.core.settings_for(f_t + 1), 'stamp_ns', None) == f_t, TIMEOUT)
     mark = client.diag_mark()
     q, _, _ = client.send(cloud_of(sim_scan(stamp())), outputs=False)
     assert q.error_code == ScanQuality.ERROR_FRAME_MISMATCH and "elsewhere" in q.message
@@ -268,7 +268,7 @@ def test_bad_inputs_each_reported_and_node_keeps_running(rig):
     _set(node, check_frame=True)
     v_t = stamp()
     client.pub_settings.publish(settings_msg(base, v_t))
-    assert wait_for(lambda v_t=v_t: node.core.settings_for(v_t + 1).stamp_ns == v_t, TIMEOUT)
+    assert wait_for(lambda v_t=v_t: getattr(node.core.settings_for(v_t + 1), 'stamp_ns', None) == v_t, TIMEOUT)
     good()
     assert node._worker.is_alive()
 
@@ -291,7 +291,7 @@ def test_services(rig):
     recommend = tester.create_client(RecommendSettings, "/xmetro_node/recommend_settings")
     base = sim_scan(40 * S)
     client.pub_settings.publish(settings_msg(base, 39 * S))
-    assert wait_for(lambda: node.core.settings_for(40 * S).stamp_ns == 39 * S, TIMEOUT)
+    assert wait_for(lambda: getattr(node.core.settings_for(40 * S), 'stamp_ns', None) == 39 * S, TIMEOUT)
     msg = cloud_of(base)
     q, dev, _ = client.send(msg)
     assert q.error_code == ScanQuality.ERROR_NONE
@@ -357,12 +357,12 @@ def test_services(rig):
     r = call_service(recommend, req, timeout=120.0)
     assert r.success, r.message
     assert "27 orientations" in r.message and "27 settings" in r.message
-    # the current settings and orientation are among the candidates: the best is at least as good
-    assert r.p95_abs_error_after <= r.p95_abs_error_before * (1 + 1e-5)
     scores = [a.score for a in r.alternatives]
-    # the best-ranked unless its predicted gain is within its uncertainty (then the current set-up, and it says so)
+    # ranked by the score (p95 of |d| + |U|); the answer is the best-ranked, whose p95 after is its predicted total
+    # p95, unless its predicted gain is within its uncertainty (then the current set-up, and it says so)
     assert scores == sorted(scores)
-    assert scores[0] == pytest.approx(r.p95_abs_error_after) or "keep the current set-up" in r.message
+    assert (r.alternatives[0].p95_abs_error == pytest.approx(r.p95_abs_error_after)
+            or "keep the current set-up" in r.message)
     qn = np.array([r.recommended_orientation.x, r.recommended_orientation.y, r.recommended_orientation.z,
                    r.recommended_orientation.w])
     assert np.linalg.norm(qn) == pytest.approx(1.0)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import itertools
 import os
 
 import numpy as np
@@ -99,8 +98,8 @@ def test_recommend_refuses(judged):
 
 
 def test_recommend_progress_and_cancel(judged):
-    """The progress callback sees every orientation (best p95 so far never rising, ending at the answer's); the
-    cancel callback stops the search between orientations."""
+    """The progress callback sees every orientation (the best-ranked candidate's p95 so far, ending at the answer's);
+    the cancel callback stops the search between orientations."""
     model, scanner, scan, res = judged
     pts = np.asarray(res.prepared.points)
     rows = np.flatnonzero(np.linalg.norm(pts - [0, 0, 17.5], axis=1) < 8.0)
@@ -109,8 +108,8 @@ def test_recommend_progress_and_cancel(judged):
     rec = recommend(model, res.context, rows, res.features, scan.pose, scanner, scan.settings, **kw,
                     progress=seen.append)
     assert [p.evaluated for p in seen] == list(range(1, 28)) and all(p.total == 27 for p in seen)
-    assert seen[-1].kept == rec.n_orientations_kept and seen[-1].best_p95_mm == rec.best.p95_mm
-    assert all(b.best_p95_mm <= a.best_p95_mm for a, b in itertools.pairwise(seen))
+    assert seen[-1].kept == rec.n_orientations_kept and seen[-1].best_p95_mm == rec.best.reported_p95_mm
+    assert all(np.isfinite(p.best_p95_mm) for p in seen)
     calls = []
 
     def cancel_after_three() -> bool:

@@ -129,7 +129,7 @@ def _context(scan, scanner) -> FeatureContext:
     g = point_geometry(pts, scan.pose, scanner.baseline_mm)
     return FeatureContext(normals=scan.artifact.normals(scan.artifact.project(pts)), L=g.L, V=g.V,
                           standoff=g.standoff, source_distance=g.source_distance, settings=scan.settings, points=pts,
-                          u=g.u, s=g.s, baseline_mm=scanner.baseline_mm)
+                          u=g.u, s=g.s, camera_mm=scanner.camera_mm)
 
 
 # (artifact, judged settings, region centre direction (unit, from the artifact's centre / axis), radius mm)

@@ -80,5 +80,8 @@ def test_summary_of_a_judged_scan_equals_the_old_computation():
     assert q["flag_counts"] == fl.flag_counts(res.flags)
     assert q["points_flagged"] == int(np.count_nonzero(res.flags))
     # the same numbers through the old entry (pred already reduced to its finite rows)
-    again = handler.summarize(res.flags, pred[finite], q["points_valid"], False, False, q["points_received"])
+    U = res.row_uncertainty
+    no_u = ~np.isfinite(U).all(axis=1) if U is not None else np.zeros(len(pred), bool)
+    again = handler.summarize(res.flags, pred[finite], q["points_valid"], False, False, q["points_received"],
+                              U=None if U is None else U[finite & ~no_u], decisions=res.decisions[res.decisions != 255])
     assert again == q

@@ -87,7 +87,14 @@ class Candidate:
 
     @property
     def quaternion(self) -> np.ndarray:
+        """The rotation as a quaternion (x, y, z, w)."""
         return matrix_to_quat(self.rotation)
+
+    @property
+    def reported_p95_mm(self) -> float:
+        """The p95 |error| a user is told to expect (mm): the predicted total (systematic + random, from the
+        predicted distribution) when the model gives U, else the systematic p95 (``p95_mm``)."""
+        return self.predicted_p95_mm if self.predicted_p95_mm is not None else self.p95_mm
 
     @property
     def score_mm(self) -> float:
@@ -374,9 +381,9 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
                 continue
             ranked.append(Candidate(s, r, pose_o, float(means[k]), float(p95s[k]), float(cov.mean()),
                                     float(tots[k]), float(uncs[k]), float(u95s[k]), float(ood[k]), float(e95s[k])))
-        best_p95 = min(best_p95, float(np.min(p95s)))
-    if progress is not None:
-        progress(RecommendProgress(n_eval, len(orients), n_kept, len(cands), time.monotonic() - t_start, best_p95))
+        if ranked:
+            lead = min(ranked, key=lambda c: (c.score_mm, c.mean_mm))
+            best_p95 = lead.reported_p95_mm
     if not ranked:
         if n_ood:
             raise ValueError(f"all {n_ood} candidates keeping the coverage lie outside the model's domain "
@@ -410,6 +417,9 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
             best, kept = (cur[0] if cur else before), True
             note += (f"; keep the current set-up: predicted gain {gain * 1e3:.1f} um does not exceed its "
                      f"uncertainty {gain_unc * 1e3:.1f} um")
+    if progress is not None:  # the last report: the answer's own figure
+        progress(RecommendProgress(n_eval, len(orients), n_kept, len(cands), time.monotonic() - t_start,
+                                   best.reported_p95_mm))
     return Recommendation(best=best, before=before, ranked=ranked, n_points=m, n_region=n_region,
                           n_orientations=len(orients), n_orientations_kept=n_kept, n_settings=len(cands), note=note,
                           n_orientations_evaluated=n_eval, kept_current=kept, uses_uncertainty=uses_u,

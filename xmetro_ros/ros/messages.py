@@ -116,16 +116,17 @@ def recommend_response(rec: Any, frame_id: str, stamp_ns: int, scanner_id: str, 
     resp.recommended_settings = settings_msg(b)
     resp.recommended_orientation = quaternion_msg(b.quaternion)
     resp.mean_abs_error_before = mm_to_m(rec.before.mean_mm)
-    resp.p95_abs_error_before = mm_to_m(rec.before.p95_mm)
+    # p95: the total predicted |error| (systematic + random) when the model gives U (Candidate.reported_p95_mm)
+    resp.p95_abs_error_before = mm_to_m(rec.before.reported_p95_mm)
     resp.mean_abs_error_after = mm_to_m(b.mean_mm)
-    resp.p95_abs_error_after = mm_to_m(b.p95_mm)
+    resp.p95_abs_error_after = mm_to_m(b.reported_p95_mm)
     resp.coverage_before = rec.before.coverage
     resp.coverage_after = b.coverage
-    resp.meets_tolerance = bool(b.p95_mm <= tolerance_mm)
+    resp.meets_tolerance = bool(b.reported_p95_mm <= tolerance_mm)
     resp.alternatives = [
         SettingsCandidate(settings=settings_msg(a), orientation=quaternion_msg(a.quaternion),
-                          mean_abs_error=mm_to_m(a.mean_mm), p95_abs_error=mm_to_m(a.p95_mm), coverage=a.coverage,
-                          score=mm_to_m(a.score_mm))
+                          mean_abs_error=mm_to_m(a.mean_mm), p95_abs_error=mm_to_m(a.reported_p95_mm),
+                          coverage=a.coverage, score=mm_to_m(a.score_mm))
         for a in rec.ranked[:MAX_ALTERNATIVES]
     ]
     return resp
