@@ -1,6 +1,6 @@
 """Helpers for ROS 2 tests: nodes in this process, peers in separate processes, waiting for DDS matching.
 
-- :func:`spin_node`: a plain rclpy node spinning in a background thread on its own context (ros_util.NodeSpinner).
+- :func:`spin_node`: a plain rclpy node spinning in a background thread on its own context (ros.rclpy_util.NodeSpinner).
 - :class:`PeerProcess`: a helper script started as a separate process with ``ros_env.ros_env()``; waits for the
   line ``READY`` on its stdout; closing its stdin asks it to exit (it also exits on its own after a lifetime).
 - :func:`wait_subscribers` / :func:`wait_publishers`: block until DDS has matched the other side (discovery is

@@ -30,8 +30,9 @@ from xmetro_ros.msg import ScanQuality
 from xmetro_ros.ros.cloud import xyz_fields
 from xmetro_ros.ros.convert import cloud_to_scan, ns_to_stamp
 from xmetro_ros.ros.node import XmetroNode
+from xmetro_ros.ros.params import handler_params
 from xmetro_ros.ros.rclpy_util import NodeSpinner, call_service, wait_for
-from xmetro_ros.scan_handler import HandlerParams, ScanHandler
+from xmetro_ros.scan_handler import ScanHandler
 from xmetro_ros.scanner import ScannerModel
 from xmetro_ros.srv import Explain, RecommendSettings
 
@@ -61,7 +62,7 @@ def _offline(node: XmetroNode, msg, settings_scan, defaulted=False):
     # Same ONNX Runtime thread count as the node: tree ensembles sum in a thread-dependent order (last-bit changes).
     model = ModelSet.load(node.core.values["model_dir"] or None, threads=node.core.values["inference_threads"])
     handler = ScanHandler(model, ScannerModel.load(),
-                          HandlerParams.from_node_values(node.core.values))
+                          handler_params(node.core.values))
     return handler.process(scan, settings_defaulted=defaulted)
 
 

@@ -9,7 +9,9 @@ statistics and tracks each over the stream of reference scans:
 - ``residual_rms``: log of the RMS of r (a new effect adds variance even when its mean is zero);
 - ``coverage``: fraction of points with |r| ≤ U (only when U is given; a drifting scanner leaves its intervals).
 
-Residuals given as (N, 3) are reduced along ``normals`` when given, else per component (all 3N values).
+Residuals given as (N, 3) are reduced along ``normals`` when given, else per component (all 3N values); coverage
+is counted per axis when U is given per axis (N, 3) (the interval is per axis), along the normal when U has one
+value per point.
 
 In-control level and spread: each statistic's median and scaled MAD over the first ``warmup`` reference scans
 (or a ``baseline`` given by the caller, e.g. from the calibration campaign), with a floor on the spread. Then two
@@ -95,25 +97,36 @@ def scan_statistics(actual: np.ndarray, predicted: np.ndarray, U: np.ndarray | N
         raise ValueError(f"actual {a.shape} and predicted {p.shape} differ in shape")
     r = a - p
     u = None if U is None else np.asarray(U, dtype=float)
+    # Coverage is judged where the interval is defined: per axis when U is per axis (N, 3) — the conformal
+    # guarantee is per axis, and a per-axis half-width has no signed projection onto the normal.
+    r_cov, u_cov = r, u
     if r.ndim == 2 and normals is not None:
         n = np.asarray(normals, dtype=float)
         if n.shape != r.shape:
             raise ValueError(f"normals {n.shape} must match the residual {r.shape}")
         r = np.einsum("ij,ij->i", r, n)
-        if u is not None and u.ndim == 2:
-            u = np.abs(np.einsum("ij,ij->i", u, n))
+        if u is not None and u.ndim == 1:
+            r_cov = r  # one half-width per point: along the normal
     r = r.reshape(-1)
-    if u is not None:
-        u = np.broadcast_to(u, a.shape).reshape(-1) if u.ndim == a.ndim else u.reshape(-1)
-        if u.shape != r.shape:
-            raise ValueError(f"U has {u.size} values for {r.size} residuals")
-    ok = np.isfinite(r) & (np.isfinite(u) if u is not None else True)
-    if ok.sum() < 3:
+    row_ok = np.isfinite(r)
+    if u_cov is not None:
+        rc = np.asarray(r_cov).reshape(-1)
+        uc = np.broadcast_to(u_cov, np.shape(r_cov)).reshape(-1) if u_cov.ndim == np.ndim(r_cov) \
+            else u_cov.reshape(-1)
+        if uc.shape != rc.shape:
+            raise ValueError(f"U has {uc.size} values for {rc.size} residuals")
+        cov_ok = np.isfinite(rc) & np.isfinite(uc)
+        if rc.shape == r.shape:
+            row_ok &= cov_ok
+        else:  # per-axis coverage: a point counts for the residual statistics when all its U are finite
+            row_ok &= cov_ok.reshape(len(r), -1).all(axis=1)
+            cov_ok &= np.repeat(row_ok, rc.size // len(r))
+    if row_ok.sum() < 3:
         raise ValueError("a reference scan needs at least 3 finite residuals")
-    r = r[ok]
-    out = {"residual_mean": float(r.mean()), "residual_rms": float(np.log(max(np.sqrt((r**2).mean()), 1e-12)))}
-    if u is not None:
-        out["coverage"] = float(np.mean(np.abs(r) <= u[ok]))
+    rr = r[row_ok]
+    out = {"residual_mean": float(rr.mean()), "residual_rms": float(np.log(max(np.sqrt((rr**2).mean()), 1e-12)))}
+    if u_cov is not None:
+        out["coverage"] = float(np.mean(np.abs(rc[cov_ok]) <= uc[cov_ok]))
     return out
 
 

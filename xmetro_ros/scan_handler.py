@@ -108,29 +108,6 @@ class HandlerParams:
     outlier_std_ratio: float = 2.0
     working_volume_mm: float = 1_000_000.0
 
-    @classmethod
-    def from_node_values(cls, v: dict[str, Any]) -> HandlerParams:
-        """From the node's parameter values (SI: tolerance in metres)."""
-        return cls(
-            tolerance_mm=float(v["tolerance"]) * 1e3,
-            decision_rule=str(v.get("decision_rule", "guard_banded")),
-            grazing_incidence_deg=float(v["grazing_incidence_deg"]),
-            grazing_view_deg=float(v["grazing_view_deg"]),
-            domain_margin=float(v["domain_margin"]),
-            normal_quality_min=float(v["normal_quality_min"]),
-            thresholds=fl.VerdictThresholds(
-                warn_flagged_fraction=float(v["warn_flagged_fraction"]),
-                rescan_usable_fraction=float(v["rescan_usable_fraction"]),
-                rescan_over_tolerance_fraction=float(v["rescan_over_tolerance_fraction"]),
-                min_valid_points=int(v["min_valid_points"]),
-            ),
-            max_points=int(v["max_points"]),
-            cloud_overflow=str(v["cloud_overflow"]),
-            outlier_nb_neighbors=int(v["outlier_nb_neighbors"]),
-            outlier_std_ratio=float(v["outlier_std_ratio"]),
-            working_volume_mm=float(v.get("working_volume", 1000.0)) * 1e3,
-        )
-
 
 @dataclass
 class ScanResult:

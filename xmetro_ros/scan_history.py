@@ -3,7 +3,7 @@
 The node keeps the last few judged scans (:class:`ScanHistory`, bounded). A request picks a scan (stamp, 0 = the
 latest), points (flat indices, or a sphere region in the scan frame, or every processed point), and axes; the
 answer holds, for every model feature (and, for a PointNet model, the ``set_context`` player) and every requested
-axis, the SHAP values (``learn.shap_explain.explain_in_cloud``), base values, the features, the predictions
+axis, the SHAP values (``attribution.explain_in_cloud``), base values, the features, the predictions
 (= base + Σ SHAP = the published deviations) and the mean |SHAP| per feature over the explained points.
 Units: mm inside, metres in the response (the node converts).
 """
@@ -161,7 +161,7 @@ def explain_rows(model_set: Any, judged: JudgedScan, rows: np.ndarray, axes: tup
 
     The players are the model's features, plus ``set_context`` (the other points of the point's PointNet set; its
     value is how many distinct other points that set holds) when the model has a set member
-    (``learn.shap_explain.explain_in_cloud``).
+    (``attribution.explain_in_cloud``).
 
     ``output="uncertainty"`` explains the published expanded uncertainty U instead of the error (which features
     make a point uncertain): predictions = base + Σ SHAP = U. ServiceError when the model set has no calibration.

@@ -20,7 +20,7 @@ Two layers:
   :func:`validate_cloud` checks a received cloud and raises :class:`CloudFormatError` whose ``code`` is the name of
   a ``ScanQuality.ERROR_*`` constant.
 
-Units are whatever the cloud carries (metres on ROS topics); nothing here converts units (see ros_convert).
+Units are whatever the cloud carries (metres on ROS topics); nothing here converts units (see ros.convert).
 NaN handling: NaN/Inf values are returned as they are (organized clouds keep their NaN placeholders);
 ``skip_nans=True`` drops points with a NaN in any returned field, as upstream.
 """

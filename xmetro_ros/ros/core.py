@@ -19,8 +19,9 @@ import numpy as np
 from sensor_msgs.msg import PointCloud2
 
 from ..geometry import HeadPose
-from ..msg import ScannerSettings, ScanQuality
-from ..scan_handler import HandlerParams, ScanError, ScanHandler, check_deadline
+from ..msg import ReferenceCheck, ScannerSettings, ScanQuality
+from ..reference_check import ReferenceChecker, ReferenceResult, ReferenceSpec, live_candidates
+from ..scan_handler import ScanError, ScanHandler, check_deadline
 from ..scan_history import JudgedScan, ScanHistory, ServiceError, axes_from_mask, explain_rows, select_rows
 from ..scanner import ScannerModel, ScanSettings, SettingsError
 from ..srv import Explain, RecommendSettings
@@ -33,10 +34,13 @@ from .messages import (
     fill_quality,
     new_quality,
     recommend_response,
+    reference_message,
 )
 from .output_clouds import corrected_cloud, deviations_cloud
+from .params import handler_params
 
-__all__ = ["LEGACY_SCANNER_ID", "CoreOutput", "SettingsEntry", "XmetroCore", "model_scanner_id"]
+__all__ = ["LEGACY_SCANNER_ID", "CoreOutput", "SettingsEntry", "XmetroCore", "model_scanner_id",
+           "reference_checker"]
 
 #: Cards written before 0.2.0 record no scanner: they were all trained on the packaged virtual scanner.
 LEGACY_SCANNER_ID = "xm-ls90"
@@ -62,12 +66,14 @@ class SettingsEntry:
 
 @dataclass
 class CoreOutput:
-    """Messages for one scan; ``deviations`` / ``corrected`` are None when the scan is in ERROR."""
+    """Messages for one scan; ``deviations`` / ``corrected`` are None when the scan is in ERROR; ``reference`` is
+    the ReferenceCheck of a reference scan (None for other scans)."""
 
     quality: ScanQuality
     deviations: PointCloud2 | None
     corrected: PointCloud2 | None
     log: str
+    reference: ReferenceCheck | None = None
 
 
 class XmetroCore:
@@ -97,10 +103,11 @@ class XmetroCore:
             self.model = model
         except Exception as e:
             self.degraded = f"model unavailable: {e}"
-        self.handler = ScanHandler(self.model, self.scanner, HandlerParams.from_node_values(self.values))
+        self.handler = ScanHandler(self.model, self.scanner, handler_params(self.values))
         self._settings: deque[SettingsEntry] = deque(maxlen=int(values["settings_history"]))
         self._settings_lock = threading.Lock()
         self.history = ScanHistory(int(values["scan_history"]))
+        self.reference = reference_checker(values)
 
     @property
     def model_id(self) -> str:
@@ -109,7 +116,7 @@ class XmetroCore:
     def update_values(self, changes: dict[str, Any]) -> None:
         """Apply live parameter changes (already validated)."""
         self.values.update(changes)
-        self.handler.params = HandlerParams.from_node_values(self.values)
+        self.handler.params = handler_params(self.values)
 
     # ------------------------------------------------------------------ settings
     def add_settings(self, msg: ScannerSettings) -> str:
@@ -178,14 +185,27 @@ class XmetroCore:
         q = new_quality(msg.header, self.model_id, entry.msg if entry is not None else None, entry is None)
         return self._error(q, code, message, int(msg.width) * int(msg.height), t0)
 
-    def judge(self, msg: PointCloud2, t0: float | None = None, deadline: float | None = None) -> CoreOutput:
+    def judge(self, msg: PointCloud2, t0: float | None = None, deadline: float | None = None,
+              reference: bool = False) -> CoreOutput:
         """Judge one cloud; ``t0`` = monotonic receipt time (for processing_latency). Never raises for bad input.
+
+        ``reference``: the cloud is a scan of the reference sphere (``reference_scan`` topic): once judged it is
+        also checked against the sphere and fed to the drift monitor (``CoreOutput.reference``; see
+        :mod:`xmetro_ros.reference_check`). Without a configured reference (``reference_radius`` 0) it is judged
+        like any scan and its ReferenceCheck says so.
 
         ``deadline`` (``time.monotonic()`` seconds; None = no bound): checked between stages; past it the scan is
         abandoned with ERROR ``TIMEOUT`` (a stage under way is not interrupted). The live node passes now +
         ``max_processing_time``; ``xmetro predict`` passes none, so offline outputs never depend on the machine's speed.
         """
         t0 = time.monotonic() if t0 is None else t0
+        out, res = self._judge(msg, t0, deadline)
+        if reference:
+            out.reference = self._check_reference(msg, res, out)
+        return out
+
+    def _judge(self, msg: PointCloud2, t0: float, deadline: float | None) -> tuple[CoreOutput, Any]:
+        """``judge`` without the reference check: the messages and the ScanResult (None when in ERROR)."""
         stamp_ns = stamp_to_ns(msg.header.stamp)
         n = int(msg.width) * int(msg.height)
         entry = self.settings_for(stamp_ns)
@@ -195,31 +215,48 @@ class XmetroCore:
         q = new_quality(msg.header, self.model_id, entry.msg, defaulted)
         try:
             if self.model is None:
-                return self._error(q, "MODEL_UNAVAILABLE", self.degraded, n, t0)
+                return self._error(q, "MODEL_UNAVAILABLE", self.degraded, n, t0), None
             validate_cloud(msg, require_valid_points=True)
             check_deadline(deadline, "decoding")
             if entry.error:
                 return self._error(q, "INVALID_SETTINGS", f"settings stamped {entry.stamp_ns} ns are invalid: "
-                                                          f"{entry.error}", n, t0)
+                                                          f"{entry.error}", n, t0), None
             if self.values["check_frame"] and not defaulted and entry.frame_id != msg.header.frame_id:
                 return self._error(q, "FRAME_MISMATCH", f"scan frame {msg.header.frame_id!r} differs from the "
-                                                        f"settings' frame {entry.frame_id!r}", n, t0)
+                                                        f"settings' frame {entry.frame_id!r}", n, t0), None
             if entry.settings is None or entry.pose is None:  # only invalid entries lack them (handled above)
-                return self._error(q, "INVALID_SETTINGS", "settings without values", n, t0)
+                return self._error(q, "INVALID_SETTINGS", "settings without values", n, t0), None
             scan = cloud_to_scan(msg, entry.settings, entry.pose, self.scanner.id)
             res = self.handler.process(scan, settings_defaulted=defaulted, deadline=deadline)
             check_deadline(deadline, "encoding the outputs")
         except CloudFormatError as e:
-            return self._error(q, e.code, str(e), n, t0)
+            return self._error(q, e.code, str(e), n, t0), None
         except ScanError as e:
-            return self._error(q, e.code, str(e), n, t0)
+            return self._error(q, e.code, str(e), n, t0), None
         except Exception as e:
-            return self._error(q, "INTERNAL", f"{type(e).__name__}: {e}", n, t0)
+            return self._error(q, "INTERNAL", f"{type(e).__name__}: {e}", n, t0), None
 
         try:
-            return self._outputs(msg, q, res, entry, stamp_ns, t0)
+            return self._outputs(msg, q, res, entry, stamp_ns, t0), res
         except Exception as e:
-            return self._error(q, "INTERNAL", f"encoding the outputs failed: {type(e).__name__}: {e}", n, t0)
+            return self._error(q, "INTERNAL", f"encoding the outputs failed: {type(e).__name__}: {e}", n, t0), None
+
+    def _check_reference(self, msg: PointCloud2, res: Any, out: CoreOutput) -> ReferenceCheck:
+        """The ReferenceCheck of a judged reference scan (never raises: a failure is a MISMATCH with its reason)."""
+        checker = self.reference
+        n_mon = checker.monitor.n if checker is not None else 0
+        if checker is None:
+            r = ReferenceResult("MISMATCH", 0, 0, message="scan on reference_scan but no reference sphere is "
+                                                          "configured (reference_radius 0)")
+        elif res is None:
+            r = ReferenceResult("MISMATCH", n_mon, 0, message=f"reference scan not judged: {out.quality.message}")
+        else:
+            try:
+                r = checker.check(res.prepared.points, res.predictions, res.row_uncertainty,
+                                  live_candidates(res.prepared))
+            except Exception as e:
+                r = ReferenceResult("MISMATCH", n_mon, 0, message=f"reference check failed: {type(e).__name__}: {e}")
+        return reference_message(msg.header, self.model_id, r)
 
     def _outputs(self, msg: PointCloud2, q: ScanQuality, res: Any, entry: SettingsEntry, stamp_ns: int,
                  t0: float) -> CoreOutput:
@@ -321,6 +358,20 @@ class XmetroCore:
         except Exception as e:
             return failed_response(base, f"recommendation failed: {type(e).__name__}: {e}")
         return recommend_response(rec, judged.frame_id, judged.stamp_ns, self.scanner.id, tol_mm, self.model_id)
+
+
+def reference_checker(values: dict[str, Any]) -> ReferenceChecker | None:
+    """The node's reference checker from its parameters (SI), or None when ``reference_radius`` is 0."""
+    from ..drift import DriftConfig
+
+    radius = float(values.get("reference_radius", 0.0) or 0.0)
+    if radius <= 0:
+        return None
+    c = [float(m_to_mm(float(x))) for x in values.get("reference_center", (0.0, 0.0, 0.0))]
+    spec = ReferenceSpec(radius_mm=float(m_to_mm(radius)), center_mm=(c[0], c[1], c[2]),
+                         fit_center=bool(values.get("reference_fit_center", False)),
+                         max_mismatch_mm=float(m_to_mm(float(values.get("reference_max_mismatch", 0.0005)))))
+    return ReferenceChecker(spec, DriftConfig(warmup=int(values.get("reference_warmup", 10))))
 
 
 def _lean_context(ctx: Any) -> Any:

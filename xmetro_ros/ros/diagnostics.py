@@ -9,13 +9,14 @@ Level (the most severe reason wins; the message lists the reasons, most severe f
   come back, or an abandoned worker thread still running); the last scan could not be processed (ScanQuality
   ERROR); scans arrive but no ScannerSettings ever did (every scan runs on the configured defaults);
 - WARN: no scan for ``scan_timeout`` seconds (stale input: a dead scanner or a lost connection; also before the
-  first scan); the last scan was judged WARN or RESCAN, or its settings were defaulted;
+  first scan); the last scan was judged WARN or RESCAN, or its settings were defaulted; the reference drift monitor
+  says WARN (held until ``~/reset_reference``), or the last reference scan did not show the declared sphere;
 - OK otherwise.
 
 Values: node-level scan accounting (``scans_received`` = ``scans_judged`` + ``scans_dropped`` + ``scans_queued`` +
 ``scans_in_progress``; ``scans_lost`` before the callback), frequency (diagnostic_updater's FrequencyStatus keys:
 events in window, events since startup, duration of window, actual frequency), latency (last and p50 / max over
-the last 100 scans, ms), the watchdog's counters, the last verdict and message.
+the last 100 scans, ms), the watchdog's counters, the last verdict and message, the reference monitor's state.
 """
 
 from __future__ import annotations
@@ -34,6 +35,9 @@ TASK_NAME = "scan processing"
 FREQUENCY_WINDOW_S = 10.0
 OK, WARN, ERROR = 0, 1, 2
 _VERDICT_LEVEL = {0: OK, 1: WARN, 2: WARN, 3: ERROR}
+# ReferenceCheck.STATE_* (kept as numbers: this module builds no xmetro_ros message)
+_REF_WARN, _REF_MISMATCH = 2, 3
+_REF_NAMES = {0: "WARMUP", 1: "OK", 2: "WARN", 3: "MISMATCH"}
 
 
 def status_name(node_name: str) -> str:
@@ -74,6 +78,9 @@ class DiagnosticsState:
         self.last_verdict: int | None = None
         self.last_message = "waiting for scans"
         self.last_defaulted = False
+        self.reference_state: int | None = None  # ReferenceCheck.STATE_* of the last reference scan
+        self.reference_message = ""
+        self.reference_scans = 0
         self._start = time.monotonic()
         self._last_scan: float | None = None
         self._latencies: deque[float] = deque(maxlen=100)
@@ -130,6 +137,20 @@ class DiagnosticsState:
             self.last_defaulted = defaulted
             self._latencies.append(latency_s)
 
+    def on_reference(self, state: int, message: str, reference_scans: int) -> None:
+        """The last reference scan's check (ReferenceCheck.STATE_*: 0 warm-up, 1 OK, 2 WARN, 3 mismatch). A WARN
+        holds until :meth:`on_reference_reset` (the monitor itself holds it too)."""
+        with self._lock:
+            if self.reference_state == _REF_WARN and state == _REF_MISMATCH:
+                self.reference_message = f"{self.reference_message} (and: {message})"
+                return
+            self.reference_state, self.reference_message = int(state), message
+            self.reference_scans = int(reference_scans)
+
+    def on_reference_reset(self) -> None:
+        with self._lock:
+            self.reference_state, self.reference_message, self.reference_scans = None, "", 0
+
     def counters(self) -> dict[str, int]:
         """The scan accounting now: received, judged, dropped, lost."""
         with self._lock:
@@ -150,6 +171,8 @@ class DiagnosticsState:
         if since > self.scan_timeout:
             what = "no scan for" if self._last_scan is not None else "no scan received in"
             out.append((WARN, f"stale: {what} {since:.1f} s (scan_timeout {self.scan_timeout:g} s)"))
+        if self.reference_state in (_REF_WARN, _REF_MISMATCH):
+            out.append((WARN, self.reference_message))
         if self.last_verdict is not None:
             lvl = _VERDICT_LEVEL[self.last_verdict]
             if self.last_defaulted:
@@ -200,6 +223,10 @@ class DiagnosticsState:
                 if self.last_verdict is not None else "none",
                 "settings_defaulted": str(self.last_defaulted).lower(),
                 "worker_stalled": self.stalled or "no",
+                "reference_state": _REF_NAMES.get(self.reference_state, "none")
+                if self.reference_state is not None else "none",
+                "reference_scans": self.reference_scans,
+                "reference_message": self.reference_message or "none",
             }
         st = DiagnosticStatus(level=_level_value(lvl), name=self.name, message=msg[:500],
                               hardware_id=self.hardware_id)

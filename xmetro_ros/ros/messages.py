@@ -1,5 +1,6 @@
 """Messages of the node's outputs and services, built from the core's results (mm → m here, through
-:mod:`xmetro_ros.ros.convert`'s unit functions): ``ScanQuality``, ``Explain`` and ``RecommendSettings`` responses.
+:mod:`xmetro_ros.ros.convert`'s unit functions): ``ScanQuality``, ``ReferenceCheck``, ``Explain`` and
+``RecommendSettings`` responses.
 
 No DDS: plain message objects, shared by the live node and ``xmetro predict``.
 """
@@ -12,7 +13,7 @@ import numpy as np
 from geometry_msgs.msg import Quaternion
 
 from .. import flags as fl
-from ..msg import ScannerSettings, ScanQuality, SettingsCandidate
+from ..msg import ReferenceCheck, ScannerSettings, ScanQuality, SettingsCandidate
 from ..srv import Explain, RecommendSettings
 from .convert import mm_to_m, settings_to_msg
 
@@ -25,6 +26,7 @@ __all__ = [
     "new_quality",
     "quaternion_msg",
     "recommend_response",
+    "reference_message",
 ]
 
 #: Alternatives listed in a ``RecommendSettings`` response.
@@ -66,6 +68,34 @@ def fill_quality(q: ScanQuality, summary: dict[str, Any]) -> ScanQuality:
     q.decision_rule = str(summary["decision_rule"])
     q.points_conforming, q.points_non_conforming, q.points_undecided = (int(c) for c in summary["decision_counts"])
     return q
+
+
+_REFERENCE_STATES = {"WARMUP": ReferenceCheck.STATE_WARMUP, "OK": ReferenceCheck.STATE_OK,
+                     "WARN": ReferenceCheck.STATE_WARN, "MISMATCH": ReferenceCheck.STATE_MISMATCH}
+
+
+def reference_message(header: Any, model_id: str, res: Any) -> ReferenceCheck:
+    """``ReferenceCheck`` of a reference scan with ``header`` from a ``reference_check.ReferenceResult`` (mm → m)."""
+    m = ReferenceCheck()
+    m.header = header
+    m.model_id = model_id
+    m.state = _REFERENCE_STATES[res.state]
+    m.reference_scans = int(res.reference_scans)
+    m.points = int(res.points)
+    m.actual_mean_abs_error = float(mm_to_m(res.actual_mean_abs_mm))
+    m.residual_mean = float(mm_to_m(res.residual_mean_mm))
+    m.residual_rms = float(mm_to_m(res.residual_rms_mm))
+    m.coverage = float(res.coverage)
+    st = res.drift
+    if st is not None and st.state == "WARN":
+        m.statistic, m.detector = st.statistic, st.detector
+        m.value, m.threshold = float(st.value), float(st.threshold)
+        m.first_warn_scan = int(st.first_warn_scan or 0)
+    m.candidate_effect = res.candidate
+    m.candidate_rho = float(res.candidate_rho)
+    m.candidate_p = float(res.candidate_p)
+    m.message = res.message
+    return m
 
 
 def failed_response(response: Any, message: str) -> Any:

@@ -17,21 +17,26 @@ Topics (names relative to the node; ``~`` = the node's private namespace):
   nominal − measured, U its expanded uncertainty at 95 %), ``~/corrected`` (the input cloud, same fields, with
   x, y, z + predicted error, residual uncertainty U; points without a prediction unchanged), ``~/quality``
   (ScanQuality), ``/diagnostics`` (DiagnosticArray, every ``diagnostics_period`` and at once on a level change).
-- services ``~/explain`` (Explain.srv), ``~/recommend_settings`` (RecommendSettings.srv); action
-  ``~/recommend_settings`` (RecommendSettings.action: the same search with feedback and cancel).
+- sub ``reference_scan`` (PointCloud2, as ``scan``): scans of the reference sphere (``reference_radius``,
+  ``reference_center``): judged like any scan, then checked against the certified sphere and fed to the drift
+  monitor; pub ``~/reference`` (ReferenceCheck: residual, coverage, drift state, candidate effect), WARN on
+  ``/diagnostics`` on drift (docs/closed-loop.md, "In-line monitoring in the node").
+- services ``~/explain`` (Explain.srv), ``~/recommend_settings`` (RecommendSettings.srv), ``~/reset_reference``
+  (std_srvs/Trigger: forget the reference stream after a fix); action ``~/recommend_settings``
+  (RecommendSettings.action: the same search with feedback and cancel).
 
 Processing runs in a worker thread fed by a bounded queue (``queue_depth``; oldest dropped and counted when full),
-so services and parameter changes stay responsive whatever the executor. The computation itself is
+so services and parameter changes stay responsive whatever the executor (:mod:`xmetro_ros.ros.worker`, with the
+watchdog); the service and action callbacks are in :mod:`xmetro_ros.ros.services`. The computation itself is
 :class:`XmetroCore` (no DDS), which ``xmetro predict`` can use offline to produce the very same messages.
 """
 
 from __future__ import annotations
 
 import os
-import threading
 import time
-from collections import OrderedDict, deque
-from typing import TYPE_CHECKING, Any
+from collections import OrderedDict
+from typing import Any
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
@@ -44,14 +49,17 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.subscription import Subscription
 from sensor_msgs.msg import PointCloud2
+from std_srvs.srv import Trigger
 
 from ..action import RecommendSettings as RecommendSettingsAction
-from ..msg import ScannerSettings, ScanQuality
+from ..msg import ReferenceCheck, ScannerSettings, ScanQuality
 from ..srv import Explain, RecommendSettings
 from . import params as node_params
 from .convert import stamp_to_ns
 from .core import XmetroCore
 from .diagnostics import DiagnosticsState
+from .services import ServiceHandlers
+from .worker import ScanWorker
 
 __all__ = [
     "READY_MESSAGE",
@@ -87,14 +95,9 @@ def output_qos(depth: int = 10) -> QoSProfile:
                       durability=DurabilityPolicy.VOLATILE)
 
 
-# The wiring is a mixin of rclpy Node subclasses (plain and lifecycle): type-check it as a Node.
-if TYPE_CHECKING:
-    _NodeBase = Node
-else:
-    _NodeBase = object
-
-
-class XmetroWiring(_NodeBase):
+# The wiring (with its worker and service mixins, type-checked as Nodes) is a mixin of rclpy Node subclasses
+# (plain and lifecycle).
+class XmetroWiring(ScanWorker, ServiceHandlers):
     """The node's wiring (parameters, publishers, subscriptions, services, worker), shared by :class:`XmetroNode`
     and ``lifecycle_node.XmetroLifecycleNode``. Mixed into an ``rclpy.node.Node`` subclass; the steps are split so
     that the lifecycle node can run them from its transitions: :meth:`_init_wiring` (parameters, in ``__init__``),
@@ -110,17 +113,8 @@ class XmetroWiring(_NodeBase):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._work_group = MutuallyExclusiveCallbackGroup()
         self._srv_group = ReentrantCallbackGroup()
-        self._queue: deque[tuple[PointCloud2, float]] = deque()
-        self._qmax = 1
-        self._cv = threading.Condition()
-        self._stop = False
-        self._worker: threading.Thread | None = None
-        self._diag_lock = threading.Lock()
-        # Watchdog state (under self._cv): the scan in processing (start, msg, t0), the live worker's token, abandoned
-        # worker threads still running; last sequence number seen per publisher (loss accounting).
-        self._busy: tuple[float, PointCloud2, float] | None = None
-        self._token: object = object()
-        self._abandoned: list[threading.Thread] = []
+        self._init_worker_state()
+        # last sequence number seen per publisher (loss accounting)
         self._last_seq: OrderedDict[bytes, int] = OrderedDict()
         self._inputs: list[Any] = []
         self._outputs: list[Any] = []
@@ -149,7 +143,8 @@ class XmetroWiring(_NodeBase):
         self.pub_corr = create(PointCloud2, "~/corrected", output_qos(2))
         self.pub_quality = create(ScanQuality, "~/quality", output_qos())
         self.pub_diag = create(DiagnosticArray, "/diagnostics", output_qos())
-        self._outputs = [self.pub_dev, self.pub_corr, self.pub_quality, self.pub_diag]
+        self.pub_reference = create(ReferenceCheck, "~/reference", output_qos())
+        self._outputs = [self.pub_dev, self.pub_corr, self.pub_quality, self.pub_diag, self.pub_reference]
 
     def _create_inputs(self) -> None:
         """Subscriptions (QoS overridable by ``qos_overrides.<topic>.subscription...`` parameters), services, the
@@ -166,6 +161,11 @@ class XmetroWiring(_NodeBase):
             self.sub_scan = self.create_subscription(
                 PointCloud2, "scan", self._on_scan, scan_qos(values["reliability"]), callback_group=self._work_group,
                 qos_overriding_options=overrides)
+        # Reference scans: their own topic (a cell publishes or remaps its reference-artifact scans there), the same
+        # QoS and queue as the scans; judged like any scan, then checked against the reference sphere.
+        self.sub_reference = self.create_subscription(
+            PointCloud2, "reference_scan", self._on_reference_scan, scan_qos(values["reliability"]),
+            callback_group=self._work_group, qos_overriding_options=QoSOverridingOptions.with_default_policies())
         # Settings: a transient-local subscription gets the history a latched (transient-local) publisher kept
         # for late joiners, but never matches a volatile publisher (`ros2 topic pub`, a bag replayed without QoS
         # metadata); a volatile one matches both, without history. Both feed one handler; a message received twice
@@ -187,8 +187,10 @@ class XmetroWiring(_NodeBase):
                                              execute_callback=self._execute_recommend,
                                              cancel_callback=lambda _goal: CancelResponse.ACCEPT,
                                              callback_group=self._srv_group)
-        self._inputs = [self.sub_scan, self.sub_settings, self.sub_settings_volatile, self.srv_explain,
-                        self.srv_recommend, self.action_recommend]
+        self.srv_reset_reference = self.create_service(Trigger, "~/reset_reference", self._on_reset_reference,
+                                                       callback_group=self._srv_group)
+        self._inputs = [self.sub_scan, self.sub_reference, self.sub_settings, self.sub_settings_volatile,
+                        self.srv_explain, self.srv_recommend, self.action_recommend, self.srv_reset_reference]
         with self._cv:
             self._stop = False
             self._queue.clear()
@@ -216,16 +218,6 @@ class XmetroWiring(_NodeBase):
         for pub in self._outputs:
             self.destroy_publisher(pub)
         self._outputs = []
-
-    def _stop_worker(self) -> None:
-        with self._cv:
-            self._stop = True
-            self._queue.clear()
-            self._busy = None
-            self._cv.notify_all()
-        if self._worker is not None and self._worker is not threading.current_thread():
-            self._worker.join(timeout=10.0)
-        self._worker = None
 
     def _log_ready(self) -> None:
         from .dds_env import dds_env_summary
@@ -296,204 +288,17 @@ class XmetroWiring(_NodeBase):
             while len(self._last_seq) > 256:  # bounded: publishers come and go
                 self._last_seq.popitem(last=False)
 
-    def _on_scan(self, msg: PointCloud2, info: Any) -> None:
+    def _on_reference_scan(self, msg: PointCloud2, info: Any) -> None:
+        self._on_scan(msg, info, reference=True)
+
+    def _on_scan(self, msg: PointCloud2, info: Any, reference: bool = False) -> None:
         t0 = time.monotonic()
         core, diag = self.core, self.diag
         if core is None or diag is None:
             return
         self._count_gaps(info)
         diag.on_received()
-        dropped = None
-        with self._cv:
-            if self._stop:
-                return
-            if len(self._queue) >= self._qmax:
-                dropped = self._queue.popleft()
-                diag.on_dropped()
-            self._queue.append((msg, t0))
-            self._update_queue_diag()
-            self._cv.notify()
-        if dropped is not None:
-            text = f"the node's processing queue was full ({self._qmax}): scan dropped unjudged"
-            self.get_logger().warning(f"{text} (stamp {stamp_to_ns(dropped[0].header.stamp)} ns)")
-            self._publish_quality(core.unjudged(dropped[0], "QUEUE_OVERFLOW", text, dropped[1]).quality)
-
-    def _update_queue_diag(self) -> None:
-        """Caller holds self._cv."""
-        if self.diag is not None:
-            self.diag.on_queue(len(self._queue), int(self._busy is not None))
-
-    def _start_worker(self) -> threading.Thread:
-        with self._cv:
-            token = object()
-            self._token = token
-            t = threading.Thread(target=self._work, args=(token,), name="xmetro-worker", daemon=True)
-            t.start()
-            return t
-
-    def _work(self, token: object) -> None:
-        while True:
-            with self._cv:
-                while not self._queue and not self._stop and self._token is token:
-                    self._cv.wait(0.5)
-                if self._stop or self._token is not token:
-                    return
-                msg, t0 = self._queue.popleft()
-                self._busy = (time.monotonic(), msg, t0)
-                self._update_queue_diag()
-            try:
-                self._process(msg, t0, token)
-            except Exception as e:
-                try:
-                    self.get_logger().error(f"unexpected failure while publishing: {type(e).__name__}: {e}")
-                except Exception:
-                    return
-            finally:
-                with self._cv:
-                    if self._token is token:
-                        self._busy = None
-                        self._update_queue_diag()
-
-    def _process(self, msg: PointCloud2, t0: float, token: object) -> None:
-        core = self.core
-        if core is None:
-            return
-        out = core.judge(msg, t0, deadline=time.monotonic() + float(core.values["max_processing_time"]))
-        with self._cv:
-            if self._token is not token:
-                return  # abandoned by the watchdog: its scan was already answered TIMEOUT
-            self._busy = None
-            self._update_queue_diag()
-        q = out.quality
-        if out.deviations is not None:
-            self.pub_dev.publish(out.deviations)
-            self.pub_corr.publish(out.corrected)
-        q.processing_latency = time.monotonic() - t0
-        if q.verdict == ScanQuality.VERDICT_ERROR:
-            self.get_logger().error(out.log)
-        elif q.settings_defaulted:
-            self.get_logger().warning(out.log)
-        else:
-            self.get_logger().debug(out.log)
-        if q.error_code == ScanQuality.ERROR_TIMEOUT and self.diag is not None:
-            self.diag.on_timeout()
-        self._answer(q)
-
-    def _answer(self, q: ScanQuality) -> None:
-        """Count a judged scan, publish its quality (with the counters) and /diagnostics on a level change."""
-        diag = self.diag
-        if diag is None:
-            return
-        before = diag.published_level
-        diag.on_result(int(q.verdict), q.message, q.processing_latency, bool(q.settings_defaulted))
-        self._publish_quality(q)
-        if diag.level() != before:
-            self._publish_diag()
-
-    def _publish_quality(self, q: ScanQuality) -> None:
-        if self.diag is not None:
-            for k, v in self.diag.counters().items():
-                setattr(q, k, v)
-        self.pub_quality.publish(q)
-
-    def _supervise(self) -> None:
-        """Watchdog supervisor (diagnostics timer): flag a scan past ``max_processing_time``; abandon and replace a
-        worker past twice the bound (at most one abandoned thread alive: Python cannot kill it)."""
-        core, diag = self.core, self.diag
-        if core is None or diag is None:
-            return
-        bound = float(core.values["max_processing_time"])
-        now = time.monotonic()
-        abandoned = None
-        with self._cv:
-            self._abandoned = [t for t in self._abandoned if t.is_alive()]
-            busy = self._busy
-            reason = ""
-            if busy is not None and now - busy[0] > bound:
-                stamp = stamp_to_ns(busy[1].header.stamp)
-                reason = (f"worker stalled: scan stamped {stamp} ns processing for {now - busy[0]:.1f} s "
-                          f"> max_processing_time {bound:g} s")
-                if now - busy[0] > 2 * bound and not self._abandoned and not self._stop:
-                    abandoned = busy
-                    if self._worker is not None:
-                        self._abandoned.append(self._worker)
-                    self._busy = None
-                    self._worker = self._start_worker()
-                    self._update_queue_diag()
-            if self._abandoned:
-                reason = "; ".join(x for x in (reason, f"{len(self._abandoned)} abandoned worker thread(s) still "
-                                               "running (Python cannot stop one; its result will be discarded)") if x)
-        diag.set_stalled(reason)
-        if abandoned is not None:
-            start, msg, t0 = abandoned
-            text = (f"processing exceeded max_processing_time {bound:g} s: worker abandoned after "
-                    f"{now - start:.1f} s, scan answered unjudged")
-            self.get_logger().error(f"watchdog: {text} (stamp {stamp_to_ns(msg.header.stamp)} ns)")
-            diag.on_timeout(abandoned_worker=True)
-            self._answer(core.unjudged(msg, "TIMEOUT", text, t0).quality)
-
-    def _publish_diag(self) -> None:
-        self._supervise()
-        with self._diag_lock:
-            try:
-                if self.diag is not None and self._outputs:
-                    self.pub_diag.publish(self.diag.build(self.get_clock().now().to_msg()))
-            except Exception:
-                pass
-
-    def _on_explain(self, req: Explain.Request, resp: Explain.Response) -> Explain.Response:
-        assert self.core is not None
-        out = self.core.explain(req)
-        if not out.success:
-            self.get_logger().warning(f"~/explain refused: {out.message}")
-        return out
-
-    def _on_recommend(self, req: RecommendSettings.Request, resp: RecommendSettings.Response) -> Any:
-        assert self.core is not None
-        out = self.core.recommend(req)
-        if not out.success:
-            self.get_logger().warning(f"~/recommend_settings refused: {out.message}")
-        return out
-
-    def _execute_recommend(self, goal: Any) -> Any:
-        """``~/recommend_settings`` action: the service's search with feedback; cancel → CANCELED, a refused
-        request → ABORTED (result success false, message says why)."""
-        from ..recommend import RecommendCancelled, RecommendProgress
-
-        result = RecommendSettingsAction.Result()
-        core = self.core
-        if core is None:
-            goal.abort()
-            result.message = "the node is not configured"
-            return result
-        fb = RecommendSettingsAction.Feedback()
-
-        def progress(p: RecommendProgress) -> None:
-            fb.orientations_evaluated, fb.orientations_total = p.evaluated, p.total
-            fb.orientations_kept, fb.settings_per_orientation = p.kept, p.n_settings
-            fb.elapsed = float(p.elapsed_s)
-            fb.best_p95_abs_error = float(p.best_p95_mm) * 1e-3  # mm → m (inf stays inf)
-            goal.publish_feedback(fb)
-
-        try:
-            out = core.recommend(goal.request, progress, lambda: goal.is_cancel_requested)
-        except RecommendCancelled as e:
-            goal.canceled()
-            result.message = str(e)
-            result.model_id = core.model_id
-            return result
-        for name in RecommendSettings.Response.get_fields_and_field_types():
-            setattr(result, name, getattr(out, name))
-        if out.success:
-            goal.succeed()
-        else:
-            self.get_logger().warning(f"~/recommend_settings action refused: {out.message}")
-            goal.abort()
-        return result
-
-    def queue_length(self) -> int:
-        return len(self._queue)
-
+        self._enqueue(core, diag, msg, t0, reference)
 
 class XmetroNode(XmetroWiring, Node):
     """The live node (see the module docstring). Extra keyword arguments go to ``rclpy.node.Node``

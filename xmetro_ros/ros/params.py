@@ -15,7 +15,11 @@ from typing import Any
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 
-__all__ = ["PARAMS", "ParamSpec", "declare_all", "validate", "values_from_node"]
+from .. import flags as fl
+from ..scan_handler import HandlerParams
+from .convert import m_to_mm
+
+__all__ = ["PARAMS", "ParamSpec", "declare_all", "handler_params", "validate", "values_from_node"]
 
 
 @dataclass(frozen=True)
@@ -102,6 +106,20 @@ PARAMS: tuple[ParamSpec, ...] = (
               "dead scanner is visible)", 0.1, 3600.0),
     ParamSpec("diagnostics_period", 1.0, "s", "period of /diagnostics (also published at once on a level change)",
               0.05, 60.0, read_only=True),
+    ParamSpec("reference_radius", 0.0, "m", "certified radius of the reference sphere whose scans arrive on the "
+              "reference_scan topic (in-line drift monitoring, ~/reference); 0 = no reference monitoring",
+              0.0, 10.0, read_only=True),
+    ParamSpec("reference_center", [0.0, 0.0, 0.0], "m", "centre of the reference sphere in the reference scans' "
+              "frame (known from the fixture, a CMM or a tracker); ignored with reference_fit_center",
+              read_only=True),
+    ParamSpec("reference_fit_center", False, "", "fit the reference sphere's centre on each reference scan with "
+              "the certified radius (no known position; a drift that shifts the sphere is then invisible)",
+              read_only=True),
+    ParamSpec("reference_warmup", 10, "scans", "reference scans that set the in-control level of the drift "
+              "monitor (EWMA + CUSUM, xmetro_ros/drift.py)", 3, 1000, read_only=True),
+    ParamSpec("reference_max_mismatch", 0.0005, "m", "a reference scan whose median |error| along the normal "
+              "exceeds this does not show the declared sphere: MISMATCH, not monitored", 1e-6, 0.1,
+              read_only=True),
 )
 _BY_NAME = {p.name: p for p in PARAMS}
 #: Parameters read when the model is loaded (read-only on the plain node; on the lifecycle node settable while
@@ -122,6 +140,8 @@ def _descriptor(p: ParamSpec, writable: bool = False) -> ParameterDescriptor:
         d.type = ParameterType.PARAMETER_INTEGER
         if p.lo is not None and p.hi is not None:
             d.integer_range = [IntegerRange(from_value=int(p.lo), to_value=int(p.hi), step=1)]
+    elif isinstance(p.default, list):
+        d.type = ParameterType.PARAMETER_DOUBLE_ARRAY
     elif isinstance(p.default, float):
         d.type = ParameterType.PARAMETER_DOUBLE
         if p.lo is not None and p.hi is not None:
@@ -152,11 +172,43 @@ def validate(changes: dict[str, Any], current: dict[str, Any]) -> str | None:
             return f"{name} must be one of {', '.join(spec.choices)}, got {value!r}"
         if isinstance(value, float) and not math.isfinite(value):
             return f"{name} must be finite"
+        if isinstance(spec.default, list):
+            vals = list(value)
+            if len(vals) != len(spec.default) or not all(math.isfinite(float(x)) for x in vals):
+                return f"{name} must be {len(spec.default)} finite numbers, got {vals}"
+            continue
         if spec.lo is not None and not isinstance(value, (bool, str)) and not spec.lo <= value <= spec.hi:
             return f"{name} = {value} is outside [{spec.lo:g}, {spec.hi:g}] {spec.unit}"
     return None
 
 
 def values_from_node(node: Any) -> dict[str, Any]:
-    """Current values of all our parameters."""
-    return {p.name: node.get_parameter(p.name).value for p in PARAMS}
+    """Current values of all our parameters (arrays as lists of floats)."""
+    out = {}
+    for p in PARAMS:
+        v = node.get_parameter(p.name).value
+        out[p.name] = [float(x) for x in v] if isinstance(p.default, list) else v
+    return out
+
+
+def handler_params(v: dict[str, Any]) -> HandlerParams:
+    """The core's :class:`~xmetro_ros.scan_handler.HandlerParams` (mm) from the node's parameter values (SI)."""
+    return HandlerParams(
+        tolerance_mm=float(m_to_mm(float(v["tolerance"]))),
+        decision_rule=str(v.get("decision_rule", "guard_banded")),
+        grazing_incidence_deg=float(v["grazing_incidence_deg"]),
+        grazing_view_deg=float(v["grazing_view_deg"]),
+        domain_margin=float(v["domain_margin"]),
+        normal_quality_min=float(v["normal_quality_min"]),
+        thresholds=fl.VerdictThresholds(
+            warn_flagged_fraction=float(v["warn_flagged_fraction"]),
+            rescan_usable_fraction=float(v["rescan_usable_fraction"]),
+            rescan_over_tolerance_fraction=float(v["rescan_over_tolerance_fraction"]),
+            min_valid_points=int(v["min_valid_points"]),
+        ),
+        max_points=int(v["max_points"]),
+        cloud_overflow=str(v["cloud_overflow"]),
+        outlier_nb_neighbors=int(v["outlier_nb_neighbors"]),
+        outlier_std_ratio=float(v["outlier_std_ratio"]),
+        working_volume_mm=float(m_to_mm(float(v.get("working_volume", 1000.0)))),
+    )

@@ -4,7 +4,7 @@ Layout of a scan bag (rosbag2 format, see :mod:`xmetro_ros.bag`):
 
 - ``/scanner_settings`` (xmetro_ros/msg/ScannerSettings, SI units) stamped 1 µs before each cloud;
 - ``/scan`` (sensor_msgs/msg/PointCloud2, metres): float32 x, y, z, the scan's fields (length fields in metres,
-  see ``ros_convert.LENGTH_FIELDS``) and, for simulated scans, the expected error as float32 ``ex, ey, ez``
+  see ``ros.convert.LENGTH_FIELDS``) and, for simulated scans, the expected error as float32 ``ex, ey, ez``
   (metres; nominal − measured);
 - one MCAP metadata record ``xmetro_scan/<i>`` per scan: key ``json`` = the scan's artifact dict, meta,
   original stamp, shape, field dtypes, settings (mm/ms), pose (mm) and scanner id — what the cloud cannot carry;
