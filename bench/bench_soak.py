@@ -4,11 +4,13 @@ writes bench/results/soak.json.
 Each cycle sends, one after the other (each waiting for its ScanQuality): a small good scan (~16k valid points), a
 big good scan (~180k valid points, 371k cells), an oversize cloud (2 big scans side by side: TOO_MANY_POINTS), a
 scan with 3e38 m on a third of its points (OUT_OF_VOLUME flags), the malformed / hostile catalogue of
-``test/test_node_helpers.bad_inputs`` (without the stall input, which leaves an abandoned worker thread running
-until the layout check is fast), then a burst of 10 small scans (queue drops, losses before the callback). The
-node's resident set size is sampled every 0.5 s. Goal: flat after warm-up — growth < 5 % between the median of the
-second quarter of the run and the median of the last quarter. Also checked: every scan accounted for
-(received + lost = sent; received = judged + dropped) and no published point with NaN deviation and flags 0.
+``test/test_node_helpers.bad_inputs`` (issue 12's stall input included: a field claiming count 1,000,000, rejected
+BAD_LAYOUT by cloud.py's O(fields) layout check), then a burst of 10 small scans (queue drops, losses before the
+callback). The node's resident set size is sampled every 0.5 s. Goal: flat after warm-up — growth < 5 % between the
+median of the second quarter of the run and the median of the last quarter. Also checked: every scan accounted for
+(received + lost = sent; received = judged + dropped) and no published point with NaN deviation and flags 0. Also
+measured, in this process: the time ``cloud.validate_cloud`` takes to reject the stall input (median of 2,000 calls;
+``stall_input_rejection_us``).
 
     python bench/bench_soak.py [--duration 180] [--model DIR]
 """
@@ -43,6 +45,27 @@ def _rss_mb(pid: int) -> float:
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) / 1024.0
     return float("nan")
+
+
+def _stall_rejection_us(bad_inputs, calls: int = 2000) -> dict[str, float]:
+    """Issue 12's stall input (the catalogue's last cloud) rejected by ``validate_cloud``: median and max of
+    ``calls`` timed calls, microseconds (the check ``XmetroCore.judge`` makes before decoding a cloud)."""
+    from xmetro_ros.ros.cloud import CloudFormatError, validate_cloud
+
+    name, msg, _ = bad_inputs(lambda: 0)[-1]
+    assert name == "field count 1,000,000", name
+    times = []
+    for _ in range(calls):
+        t = time.perf_counter()
+        try:
+            validate_cloud(msg, require_valid_points=True)
+        except CloudFormatError as e:
+            assert e.code == "BAD_LAYOUT", e
+        else:
+            raise AssertionError("the stall input was accepted")
+        times.append(time.perf_counter() - t)
+    return {"median": round(float(np.median(times)) * 1e6, 2), "max": round(float(np.max(times)) * 1e6, 2),
+            "calls": calls}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -135,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
         while time.monotonic() - t_start < args.duration:
             for msg in (small, big, over, absurd):
                 send(msg)
-            for _name, msg, _codes in bad_inputs(stamp, stall=False):
+            for _name, msg, _codes in bad_inputs(stamp):
                 send(msg)
             for _ in range(10):
                 small.header.stamp = ns_to_stamp(stamp())
@@ -154,6 +177,7 @@ def main(argv: list[str] | None = None) -> int:
         cli.close()
         code = proc.stop()
 
+    stall_us = _stall_rejection_us(bad_inputs)
     rss = np.array([r for _, r in samples])
     n = len(rss)
     q2, q4 = rss[n // 4: n // 2], rss[3 * n // 4:]
@@ -180,6 +204,7 @@ def main(argv: list[str] | None = None) -> int:
         "rss_growth_q2_to_q4_pct": round(float(growth), 2),
         "goal_growth_pct": 5.0,
         "node_exit_code": code,
+        "stall_input_rejection_us": stall_us,
     }
     OUT.parent.mkdir(parents=True, exist_ok=True)
     OUT.write_text(json.dumps(result, indent=1) + "\n")

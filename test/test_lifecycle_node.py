@@ -48,6 +48,13 @@ def _change(tester: Node, transition: int) -> bool:
     return bool(r.success)
 
 
+def _accounting(node: XmetroLifecycleNode) -> tuple[dict[str, int], int, int]:
+    """The node's own record of scans: its diagnostics counters (received, judged, dropped, lost), the judged scans
+    it keeps for ~/explain, and its processing queue's length."""
+    assert node.diag is not None and node.core is not None
+    return node.diag.counters(), len(node.core.history), len(node._queue)
+
+
 def _no_quality_for(client: NodeClient, msg, seconds: float = 3.0) -> bool:
     stamp = msg.header.stamp.sec * S + msg.header.stamp.nanosec
     t_end = time.monotonic() + seconds
@@ -69,7 +76,9 @@ def test_lifecycle_transitions_drive_the_node(rig):
     assert node.core is not None and node.core.model is not None
     first_core = node.core
     base = sim_scan(10 * S)
+    idle = _accounting(node)
     assert _no_quality_for(client, cloud_of(sim_scan(7 * S)))  # inactive (never activated): not processed
+    assert _accounting(node) == idle, "a scan sent before activation moved the node's own accounting"
 
     # activate: scans are judged (best-effort subscription by default)
     assert _change(tester, Transition.TRANSITION_ACTIVATE)
@@ -85,10 +94,20 @@ def test_lifecycle_transitions_drive_the_node(rig):
     # deactivate: a scan sent while inactive gets no ~/quality
     assert _change(tester, Transition.TRANSITION_DEACTIVATE)
     assert _state(tester) == State.PRIMARY_STATE_INACTIVE
+    idle = _accounting(node)
+    assert idle[0]["scans_received"] >= 1 and idle[1] == 1  # the scan judged while active
     assert _no_quality_for(client, cloud_of(sim_scan(20 * S)))
+    assert _accounting(node) == idle, "a scan sent while inactive moved the node's own accounting"
     # load-time parameters are refused while the model is loaded
     res = node.set_parameters([Parameter("model_dir", value=str(default_model_dir()))])
     assert not res[0].successful and "clean up" in res[0].reason
+    # re-activate: the scan published while inactive was never the node's to take, so it is not counted lost
+    assert _change(tester, Transition.TRANSITION_ACTIVATE)
+    client.wait_matched()
+    q, _, _ = client.send(cloud_of(sim_scan(22 * S)))
+    assert q.error_code == ScanQuality.ERROR_NONE, q.message
+    assert node.diag.counters()["scans_lost"] == idle[0]["scans_lost"], node.diag.counters()
+    assert _change(tester, Transition.TRANSITION_DEACTIVATE)
 
     # model changeover in the same process: cleanup → model_dir → configure → activate
     assert _change(tester, Transition.TRANSITION_CLEANUP)

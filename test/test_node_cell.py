@@ -16,7 +16,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from sensor_msgs.msg import PointCloud2
 from test_node_helpers import TIMEOUT, NodeClient, cloud_of, settings_msg, sim_scan
 
-from xmetro_ros.msg import ScannerSettings
+from xmetro_ros.msg import ScannerSettings, ScanQuality
 from xmetro_ros.ros.dds_env import DDS_ENV_KEYS, LOCALHOST_ONLY_ENV
 from xmetro_ros.ros.node import XmetroNode
 from xmetro_ros.ros.rclpy_util import NodeProcess, NodeSpinner, wait_for
@@ -104,6 +104,56 @@ def test_qos_override_parameters_change_the_subscriptions():
         assert wait_for(lambda: rel.get_subscription_count() == 1, TIMEOUT)
         time.sleep(1.0)
         assert be.get_subscription_count() == 0
+    finally:
+        tester.close()
+        sp.close()
+
+
+def test_outputs_and_inputs_are_remappable():
+    """issue 11: the node's topics remap like any node's — outputs by their private names (``~/deviations``,
+    ``~/quality``, ``~/corrected``), inputs by theirs — and the node then publishes only on the remapped names."""
+    remaps = {"scan": "/cell3/points", "scanner_settings": "/cell3/settings", "~/deviations": "/cell3/dev",
+              "~/quality": "/cell3/q", "~/corrected": "/cell3/corrected"}
+    args = ["--ros-args", "-r", "__node:=xmetro_remapped"]
+    for a, b in remaps.items():
+        args += ["-r", f"{a}:={b}"]
+    sp = NodeSpinner(lambda ctx: XmetroNode(context=ctx, cli_args=args, parameter_overrides=[
+        Parameter("min_valid_points", value=50)]))
+    tester = NodeSpinner(lambda ctx: Node("xmetro_remap_tester", context=ctx))
+    got: dict[str, list] = {"q": [], "dev": [], "corrected": []}
+    try:
+        t = tester.node
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
+        subs = [t.create_subscription(ScanQuality, "/cell3/q", got["q"].append, qos),
+                t.create_subscription(PointCloud2, "/cell3/dev", got["dev"].append, qos),
+                t.create_subscription(PointCloud2, "/cell3/corrected", got["corrected"].append, qos)]
+        pub_scan = t.create_publisher(PointCloud2, "/cell3/points", qos)
+        pub_settings = t.create_publisher(ScannerSettings, "/cell3/settings", QoSProfile(
+            history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        assert wait_for(lambda: all(s.get_publisher_count() == 1 for s in subs)
+                        and pub_scan.get_subscription_count() == 1 and pub_settings.get_subscription_count() == 2,
+                        TIMEOUT), "the remapped topics never matched"
+        # nothing of the node's is left on the names it would have without the remapping
+        for name in ("/xmetro_remapped/quality", "/xmetro_remapped/deviations", "/xmetro_remapped/corrected"):
+            assert t.count_publishers(name) == 0, name
+        for name in ("/scan", "/scanner_settings", "/xmetro_remapped/scan"):
+            assert t.count_subscribers(name) == 0, name
+        base = sim_scan(300 * S)
+        pub_settings.publish(settings_msg(base, 299 * S))
+        assert wait_for(lambda: sp.node.core.settings_for(300 * S) is not None, TIMEOUT), "settings never arrived"
+        deadline = time.monotonic() + TIMEOUT
+        while time.monotonic() < deadline:  # the scan subscription is best effort: resend until answered
+            pub_scan.publish(cloud_of(base))
+            if wait_for(lambda: got["q"] and got["dev"] and got["corrected"], 2.0):
+                break
+        assert got["q"] and got["dev"] and got["corrected"], {k: len(v) for k, v in got.items()}
+        q = got["q"][0]
+        assert q.error_code == ScanQuality.ERROR_NONE and not q.settings_defaulted, q.message
+        n = base.points.reshape(-1, 3).shape[0]
+        assert got["dev"][0].width * got["dev"][0].height == n == got["corrected"][0].width * got["corrected"][0].height
+        assert all(m.header.stamp == q.header.stamp for m in (got["dev"][0], got["corrected"][0]))
     finally:
         tester.close()
         sp.close()

@@ -195,10 +195,10 @@ def test_watchdog_timeout_and_stalled_worker(rig):
     release = threading.Event()
     orig = node.core.judge
 
-    def slow_judge(msg, t0=None, deadline=None):
+    def slow_judge(msg, t0=None, deadline=None, reference=False):
         if stamp_ns_of(msg) == stall:
             release.wait(60.0)
-        return orig(msg, t0, deadline)
+        return orig(msg, t0, deadline, reference=reference)
 
     node.core.judge = slow_judge
     try:
@@ -233,7 +233,6 @@ def test_watchdog_timeout_and_stalled_worker(rig):
 def test_stress_real_node_process():
     """Bursts, oversize, absurd values, malformed layouts, big count claims against a real ``xmetro_node``."""
     domain = fresh_domain_id() % 100 + 101
-    bound_s = 2 * 1.0 + 0.5  # worst answer time: 2 x max_processing_time + diagnostics_period
     # reliable scan QoS: this test counts every scan it sends (the default best-effort one may drop under load)
     params = {**RELAXED, "max_processing_time": 1.0, "diagnostics_period": 0.5, "max_points": 100_000,
               "reliability": "reliable"}
@@ -283,9 +282,9 @@ def test_stress_real_node_process():
             dt = time.monotonic() - t0
             print(f"stress: {name}: code {q.error_code} in {dt * 1e3:.0f} ms ({q.message[:80]})")
             assert q.error_code in codes, (name, q.error_code, q.message)
-            # the watchdog's worst case for an input that stalls a stage, else a layout / value check (~20-100 ms
-            # here); both with slack for DDS and a busy shared machine
-            limit = bound_s + 5.0 if ScanQuality.ERROR_TIMEOUT in codes else 2.0
+            # every case is a cap, layout or value check (~20-100 ms here, issue 12's stall input included: no
+            # case needs the watchdog any more); the limit leaves slack for DDS and a busy shared machine
+            limit = 2.0
             if dt > limit:
                 slow.append(f"{name}: {dt:.1f} s > {limit:g} s")
             assert proc.proc.poll() is None, f"node died on {name}"

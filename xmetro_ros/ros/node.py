@@ -191,6 +191,8 @@ class XmetroWiring(ScanWorker, ServiceHandlers):
                                                        callback_group=self._srv_group)
         self._inputs = [self.sub_scan, self.sub_reference, self.sub_settings, self.sub_settings_volatile,
                         self.srv_explain, self.srv_recommend, self.action_recommend, self.srv_reset_reference]
+        # Sequence gaps count only while subscribed: what a publisher sent while the node was inactive was not lost.
+        self._last_seq.clear()
         with self._cv:
             self._stop = False
             self._queue.clear()
