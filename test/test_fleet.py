@@ -1,6 +1,7 @@
-"""`xmetro fleet predict` and the learning table on Dask: a local cluster of 2 worker processes (loopback only)
-gives the single-process results — the same output bags byte for byte, the same tables array for array; a corrupt
-bag is reported and the others complete; a second run resumes (done bags skipped)."""
+"""`xmetro fleet predict` and the learning table on Dask: a local cluster of 2 worker processes (loopback only), or
+an existing cluster given by address (``--scheduler``), gives the single-process results — the same output bags byte
+for byte, the same tables array for array; a corrupt bag is reported and the others complete; a second run resumes
+(done bags skipped); the summary holds the per-axis uncertainty U of every judged scan."""
 
 from __future__ import annotations
 
@@ -31,6 +32,20 @@ def client():
 
 
 @pytest.fixture(scope="module")
+def single(tmp_path_factory):
+    """The single-process path (``xmetro predict --deterministic``) into the fleet's output file names (a bag
+    records its own file name): name → output bag."""
+    d = tmp_path_factory.mktemp("single")
+    out = {}
+    for name, src in [("cellA/day1", DEMO), ("cellB/day1", REGRESSION), ("cellB/day2", DEMO)]:
+        ref = (d / name).with_suffix(".mcap")
+        ref.parent.mkdir(parents=True, exist_ok=True)
+        predict_bag(src, ref, deterministic=True)
+        out[name] = ref
+    return out
+
+
+@pytest.fixture(scope="module")
 def fleet_dir(tmp_path_factory):
     d = tmp_path_factory.mktemp("fleet")
     inp = d / "in"
@@ -57,7 +72,7 @@ def test_find_and_plan(fleet_dir):
         fleet.find_bags([str(inp / "nope*.mcap")])
 
 
-def test_fleet_predict_identical_to_single_process_and_resumes(client, fleet_dir, tmp_path):
+def test_fleet_predict_identical_to_single_process_and_resumes(client, fleet_dir, single):
     out = fleet_dir / "out"
     jobs = fleet.plan_jobs(fleet.find_bags([str(fleet_dir / "in")]), out)
     lines: list[str] = []
@@ -73,12 +88,9 @@ def test_fleet_predict_identical_to_single_process_and_resumes(client, fleet_dir
     assert not (out / "cellA" / "garbage.mcap").exists()
 
     # The single-process path (xmetro predict), into the same file names: the same bytes.
-    for name, src in [("cellA/day1", DEMO), ("cellB/day1", REGRESSION), ("cellB/day2", DEMO)]:
-        ref = tmp_path / name
-        ref.parent.mkdir(parents=True, exist_ok=True)
-        single = predict_bag(src, ref.with_suffix(".mcap"), deterministic=True)
-        assert (out / f"{name}.mcap").read_bytes() == ref.with_suffix(".mcap").read_bytes(), name
-        assert status[name]["scans"] == len(single.outputs)
+    for name, ref in single.items():
+        assert (out / f"{name}.mcap").read_bytes() == ref.read_bytes(), name
+        assert status[name]["scans"] == len(read_outputs(ref))
 
     # The summary: one row per judged scan, the ScanQuality values of the output bags.
     df = pd.read_parquet(res.summary)
@@ -94,6 +106,12 @@ def test_fleet_predict_identical_to_single_process_and_resumes(client, fleet_dir
         for a, axis in enumerate(fleet.AXES):
             assert np.array_equal(d[f"p95_abs_error_{axis}"].to_numpy(), [q.p95_abs_error[a] for q in qs])
             assert np.array_equal(d[f"mean_abs_error_{axis}"].to_numpy(), [q.mean_abs_error[a] for q in qs])
+        for a, axis in enumerate(fleet.AXES):  # U: expanded uncertainty per axis (the shipped model is calibrated)
+            for stat in ("p95", "mean"):
+                col = d[f"{stat}_uncertainty_{axis}"].to_numpy()
+                assert np.array_equal(col, [getattr(q, f"{stat}_uncertainty")[a] for q in qs])
+                judged = (d["verdict_name"] != "ERROR").to_numpy()
+                assert judged.any() and np.isfinite(col[judged]).all() and (col[judged] > 0).all()
         assert d["verdict"].tolist() == [int(q.verdict) for q in qs]
         assert d["points_received"].tolist() == [int(q.points_received) for q in qs]
         assert d["settings_exposure_time"].tolist() == [q.settings.exposure_time for q in qs]
@@ -122,6 +140,35 @@ def test_fleet_cli(fleet_dir, tmp_path, capsys):
     assert "2 done" in capsys.readouterr().out
     assert len(pd.read_parquet(out / "summary.parquet")) == 8
     assert main(["fleet", "predict", str(fleet_dir / "in"), "--out-dir", str(out), "--param", "nope=1"]) == 2
+
+
+def test_fleet_cli_existing_cluster_by_address(fleet_dir, single, tmp_path, capsys):
+    """``--scheduler tcp://...``: an existing cluster (its own worker process, started here) gives the output bags
+    of the single-process path byte for byte, and the summary with its uncertainty columns."""
+    import logging
+
+    from distributed import LocalCluster
+
+    from xmetro_ros.apps.cli import main
+
+    out = tmp_path / "out"
+    with LocalCluster(processes=True, n_workers=1, threads_per_worker=1, host="127.0.0.1", dashboard_address=None,
+                      silence_logs=logging.ERROR) as cluster:
+        addr = cluster.scheduler_address
+        assert addr.startswith("tcp://127.0.0.1:")
+        rc = main(["fleet", "predict", str(fleet_dir / "in" / "cellB"), "--out-dir", str(out), "--scheduler", addr,
+                   "--deterministic"])
+    cap = capsys.readouterr()
+    assert rc == 0, cap.out + cap.err
+    assert addr in cap.err and "2 done" in cap.out and "on 1 worker(s)" in cap.out
+    for name in ("day1", "day2"):
+        assert (out / f"{name}.mcap").read_bytes() == single[f"cellB/{name}"].read_bytes(), name
+    df = pd.read_parquet(out / "summary.parquet")
+    assert len(df) == 8 and df["bag"].tolist() == ["day1"] * 4 + ["day2"] * 4
+    ucols = [f"{s}_uncertainty_{a}" for s in ("p95", "mean") for a in fleet.AXES]
+    assert set(ucols) <= set(df.columns)
+    judged = df[df["verdict_name"] != "ERROR"]
+    assert len(judged) and np.isfinite(judged[ucols].to_numpy()).all()
 
 
 def test_build_table_dask_equals_build_table(client):

@@ -12,9 +12,11 @@ Outputs in ``--out-dir``:
 
 - ``<bag>.mcap`` per input bag (its path relative to the inputs' common directory, so two cells' bags of one name
   do not collide) and ``<bag>.scans.parquet`` (its per-scan quality rows);
-- ``summary.parquet``: every scan of every bag (bag, cell, time, verdict, error code, per-axis errors, settings,
-  counts: see :func:`quality_row`), readable with ``pandas.read_parquet`` or ``dask.dataframe.read_parquet``;
-- ``overview.html``: verdict shares and p95 error per cell over time (PNGs embedded), and the bags' statuses;
+- ``summary.parquet``: every scan of every bag (bag, cell, time, verdict, error code, per-axis errors and
+  uncertainty, settings, counts: see :func:`~xmetro_ros.apps.fleet_report.quality_row`), readable with
+  ``pandas.read_parquet`` or ``dask.dataframe.read_parquet``;
+- ``overview.html``: verdict shares and p95 error per cell over time (PNGs embedded), and the bags' statuses
+  (the summary and the overview are written by ``apps/fleet_report.py``);
 - ``fleet.json``: per-bag status (done / skipped / failed with the error / damaged with the data lost), timings,
   each worker's peak resident memory.
 
@@ -39,12 +41,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
+from .fleet_report import AXES, count_rows, frame, quality_row, write_overview, write_summary
 
-__all__ = ["BagJob", "FleetResult", "dask_client", "find_bags", "plan_jobs", "predict_job", "quality_row",
+__all__ = ["AXES", "BagJob", "FleetResult", "dask_client", "find_bags", "plan_jobs", "predict_job", "quality_row",
            "register", "run", "run_fleet", "write_overview", "write_summary"]
-
-AXES = ("x", "y", "z")
 SCANS_SUFFIX = ".scans.parquet"
 SUMMARY = "summary.parquet"
 OVERVIEW = "overview.html"
@@ -148,55 +148,6 @@ def plan_jobs(bags: list[Path], out_dir: str | Path, cells: list[tuple[str, str]
     return jobs
 
 
-# ---------------------------------------------------------------------------------------------------- rows
-def _flatten(prefix: str, value: Any, row: dict[str, Any]) -> None:
-    """Message fields as columns: nested messages as ``a_b``, 3-vectors as ``a_x/_y/_z``, other arrays as lists."""
-    if hasattr(value, "get_fields_and_field_types"):
-        for k in value.get_fields_and_field_types():
-            if k == "header":
-                continue
-            _flatten(f"{prefix}_{k}" if prefix else k, getattr(value, k), row)
-    elif isinstance(value, (list, tuple, np.ndarray)) or hasattr(value, "tolist"):
-        vals = value.tolist() if hasattr(value, "tolist") else list(value)
-        if len(vals) == 3 and all(isinstance(v, (int, float)) for v in vals):
-            for a, v in zip(AXES, vals, strict=True):
-                row[f"{prefix}_{a}"] = v
-        else:
-            row[prefix] = vals
-    else:
-        row[prefix] = value
-
-
-def quality_row(q: Any) -> dict[str, Any]:
-    """One ScanQuality as a flat row, generically from the message's fields (a field added to the message becomes
-    a column without a change here): ``stamp_ns``, ``frame_id``; scalars as they are (SI units: metres,
-    seconds); ``float64[3]`` per-axis fields as ``<name>_x``, ``_y``, ``_z`` (e.g. ``p95_abs_error_z``, metres);
-    the flag counts as ``flag_<name>``; the settings as ``settings_<field>`` (e.g. ``settings_exposure_time``,
-    ``settings_head_pose_position_z``); plus ``verdict_name``."""
-    from ..flags import verdict_name
-    from ..ros.convert import stamp_to_ns
-
-    row: dict[str, Any] = {"stamp_ns": int(stamp_to_ns(q.header.stamp)), "frame_id": q.header.frame_id}
-    names = list(q.flag_names)
-    for k in q.get_fields_and_field_types():
-        if k in ("header", "flag_names", "flag_counts"):
-            continue
-        _flatten(k, getattr(q, k), row)
-    for n, c in zip(names, list(q.flag_counts), strict=True):
-        row[f"flag_{n}"] = int(c)
-    row["verdict_name"] = verdict_name(int(q.verdict))
-    return row
-
-
-def _frame(rows: list[dict[str, Any]]) -> Any:
-    import pandas as pd
-
-    df = pd.DataFrame(rows)
-    if len(df):
-        df["time"] = pd.to_datetime(df["stamp_ns"], unit="ns", utc=True)
-    return df
-
-
 # ---------------------------------------------------------------------------------------------------- one bag
 def _peak_rss_mb() -> float:
     import resource
@@ -229,7 +180,7 @@ def predict_job(job: BagJob, model_dir: str | None = None, params: dict[str, Any
             r = {"bag": job.name, "cell": job.cell, "scan": i, "topic": topic}
             r.update(quality_row(o.quality))
             rows.append(r)
-        _frame(rows).to_parquet(tmp_scans, index=False)
+        frame(rows).to_parquet(tmp_scans, index=False)
         os.replace(tmp_scans, scans)
         os.replace(tmp_out, out)  # last: the .mcap under its final name marks the bag done
         with contextlib.suppress(OSError):
@@ -287,7 +238,7 @@ def run_fleet(jobs: list[BagJob], client: Any, out_dir: str | Path, *, model_dir
     for j in jobs:
         if not redo and j.done():
             res.bags.append({"bag": j.bag, "name": j.name, "cell": j.cell, "out": j.out, "status": "skipped",
-                             "scans": _count_rows(j.scans)})
+                             "scans": count_rows(j.scans)})
         else:
             todo.append(j)
     if log and len(todo) < len(jobs):
@@ -314,110 +265,6 @@ def run_fleet(jobs: list[BagJob], client: Any, out_dir: str | Path, *, model_dir
     (out_dir / STATUS).write_text(json.dumps({"workers": res.workers, "wall_s": res.wall_s, "bags": res.bags},
                                              indent=1, default=str))
     return res
-
-
-def _count_rows(path: str) -> int:
-    import pyarrow.parquet as pq
-
-    try:
-        return int(pq.ParquetFile(path).metadata.num_rows)
-    except (OSError, ValueError):
-        return 0
-
-
-def write_summary(jobs: list[BagJob], path: str | Path) -> Path | None:
-    """Concatenate the done bags' per-scan tables (in job order) into one Parquet file; None when none is done."""
-    import pandas as pd
-
-    parts = [pd.read_parquet(j.scans) for j in jobs if j.done()]
-    parts = [p for p in parts if len(p)]
-    if not parts:
-        return None
-    df = pd.concat(parts, ignore_index=True)
-    path = Path(path)
-    df.to_parquet(path, index=False)
-    return path
-
-
-# ---------------------------------------------------------------------------------------------------- HTML
-def write_overview(summary: str | Path, path: str | Path, bags: list[dict[str, Any]] | None = None,
-                   bin_s: float | None = None) -> Path:
-    """A self-contained HTML page: per cell, the share of each verdict and the median of the scans' p95 |error|
-    per axis over time (bins of ``bin_s`` seconds; default: the fleet's time span / 30), PNGs embedded; then a
-    table per cell and the bags' statuses."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import pandas as pd
-
-    from .report_html import _COLOURS, _e, _png, _table
-
-    df = pd.read_parquet(summary)
-    span = float((df["stamp_ns"].max() - df["stamp_ns"].min()) / 1e9) if len(df) else 0.0
-    bin_s = float(bin_s or max(span / 30.0, 1.0))
-    t_min = int(df["stamp_ns"].min())
-    df["bin"] = ((df["stamp_ns"] - t_min) // int(bin_s * 1e9)).astype(int)
-    df["bin_time"] = pd.to_datetime(t_min + df["bin"] * int(bin_s * 1e9), unit="ns", utc=True)
-    verdicts = [v for v in _COLOURS if v in set(df["verdict_name"])]
-    cells = sorted(df["cell"].unique())
-    p95_cols = [c for c in (f"p95_abs_error_{a}" for a in AXES) if c in df]
-
-    fig, axes = plt.subplots(len(cells), 2, figsize=(11, 2.6 * len(cells)), squeeze=False)
-    for r, cell in enumerate(cells):
-        d = df[df["cell"] == cell]
-        share = pd.crosstab(d["bin_time"], d["verdict_name"], normalize="index").reindex(columns=verdicts,
-                                                                                          fill_value=0.0)
-        ax = axes[r][0]
-        bottom = np.zeros(len(share))
-        x = share.index.to_pydatetime()
-        width = bin_s / 86400.0 * 0.9  # days, matplotlib's date unit
-        for v in verdicts:
-            ax.bar(x, share[v].to_numpy(), width=width, bottom=bottom, color=_COLOURS[v], label=v)
-            bottom += share[v].to_numpy()
-        ax.set_ylabel(f"{cell}\nshare of scans")
-        ax.set_ylim(0, 1)
-        ax = axes[r][1]
-        ok = d[d["verdict_name"] != "ERROR"]
-        for c, a in zip(p95_cols, AXES, strict=False):
-            med = ok.groupby("bin_time")[c].median() * 1e3  # m → mm
-            ax.plot(med.index.to_pydatetime(), med.to_numpy(), marker="o", ms=3, label=a)
-        ax.set_ylabel("median p95 |error| (mm)")
-        if r == 0:
-            axes[r][0].legend(fontsize=7, ncol=len(verdicts))
-            ax.legend(fontsize=7, title="axis")
-        for ax in axes[r]:
-            ax.tick_params(axis="x", labelrotation=30, labelsize=7)
-    fig.tight_layout()
-    trend = _png(fig)
-
-    rows = []
-    for cell in cells:
-        d = df[df["cell"] == cell]
-        n = len(d)
-        counts = d["verdict_name"].value_counts()
-        ok = d[d["verdict_name"] != "ERROR"]
-        rows.append([cell, d["bag"].nunique(), n, *(f"{100.0 * counts.get(v, 0) / n:.1f}" for v in verdicts),
-                     *(f"{ok[c].median() * 1e3:.4f}" if len(ok) else "" for c in p95_cols)])
-    header = ["cell", "bags", "scans", *(f"{v} %" for v in verdicts), *(f"median p95 {a} (mm)" for a in AXES[:len(
-        p95_cols)])]
-    bag_rows = [[b["name"], b.get("cell", ""), b["status"], b.get("scans", ""),
-                 b.get("error") or "; ".join(b.get("losses") or [])] for b in (bags or [])]
-    html = (
-        "<!doctype html><html><head><meta charset='utf-8'><title>xmetro fleet overview</title><style>"
-        "body{font-family:sans-serif;margin:1.5em}table{border-collapse:collapse;font-size:13px}"
-        "td,th{border:1px solid #ccc;padding:3px 8px}</style></head><body>"
-        f"<h1>Fleet overview</h1><p>{len(df)} scans from {df['bag'].nunique()} bags, {len(cells)} cells; "
-        f"{_e(str(df['time'].min()))} to {_e(str(df['time'].max()))}; time bins of {bin_s:g} s. "
-        f"Errors are the model's predicted per-scan p95 |error| (ERROR scans excluded).</p>"
-        f"<h2>Verdicts and error per cell over time</h2><img alt='trend' src='data:image/png;base64,{trend}'/>"
-        f"<h2>Per cell</h2>{_table(header, rows)}"
-        + (f"<h2>Bags</h2>{_table(['bag', 'cell', 'status', 'scans', 'error / data lost'], bag_rows)}"
-           if bag_rows else "")
-        + "</body></html>")
-    path = Path(path)
-    path.write_text(html)
-    return path
 
 
 # ---------------------------------------------------------------------------------------------------- CLI

@@ -27,6 +27,10 @@ def register(subparsers) -> None:
     p.add_argument("--min-effect", type=float, default=0.05)
     p.add_argument("--iterations", type=int, default=300, help="boosting iterations of the retrained family")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                   help="prepare the inputs (read, pre-process, features, targets) on this Dask cluster")
+    p.add_argument("--workers", type=int, default=None,
+                   help="prepare the inputs on a local Dask cluster of this many worker processes (same data)")
     p.set_defaults(func=run)
 
 
@@ -40,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
     from ..loop.report import write_report
     from ..loop.run import LoopConfig, run_loop
     from ..loop.trace import TraceConfig
-    from ..ros.scan_io import read_scans
+    from ..ros.scan_io import iter_scans
 
     try:
         given = None
@@ -52,11 +56,21 @@ def run(args: argparse.Namespace) -> int:
         if args.campaign:
             if args.inputs or args.artifact:
                 raise LoopInputError("--campaign names its recordings and artifacts: give no inputs or --artifact")
+            if args.workers or args.scheduler:
+                raise LoopInputError("--workers / --scheduler prepare bag and measured inputs: a --campaign is "
+                                     "read in this process")
             from ..loop.inputs import from_campaign
 
             data = from_campaign(args.campaign, _read_recording, feats)
+        elif args.workers or args.scheduler:
+            from ..dataset_dask import load_inputs_dask
+            from .fleet import dask_client
+
+            with dask_client(args.scheduler, args.workers) as client:
+                data = load_inputs_dask(args.inputs, args.artifact, feats, client, read_bag=iter_scans,
+                                        progress=lambda s: print(s, file=sys.stderr, flush=True))
         else:
-            data = load_inputs(args.inputs, args.artifact, feats, read_bag=read_scans)
+            data = load_inputs(args.inputs, args.artifact, feats, read_bag=iter_scans)
         cfg = LoopConfig(
             iterations=args.iterations, max_iter=args.max_iter, correction=args.correction, seed=args.seed,
             candidates=args.candidates.split(",") if args.candidates else None,
@@ -71,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
                 export_loop_model(result, data, Path(args.out) / "model")
             except LoopInputError as e:  # derived (non-registry) features: report stays valid, no model dir
                 print(f"xmetro loop: model not exported: {e}", file=sys.stderr)
-    except (ArtifactSpecError, CampaignError, LoopInputError, ValueError, FileNotFoundError, RuntimeError) as e:
+    except (ArtifactSpecError, CampaignError, LoopInputError, ValueError, OSError, RuntimeError) as e:
         print(f"xmetro loop: error: {e}", file=sys.stderr)
         return 2
     sel = result.report["selected"]

@@ -10,7 +10,7 @@ scan settings are unknown, the study's geometric features only (``MEASURED_FEATU
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +20,8 @@ from ..geometry import unit, vec3
 from ..scan import Scan
 from .data import LoopData, LoopInputError
 
-__all__ = ["MEASURED_FEATURES", "detect_kind", "from_atc5", "from_campaign", "from_nist", "from_scans", "load_inputs"]
+__all__ = ["MEASURED_FEATURES", "check_inputs", "detect_kind", "from_atc5", "from_campaign", "from_nist", "from_scans",
+           "load_inputs", "load_path"]
 
 # Study features that need no scan settings (measured sets do not declare them).
 MEASURED_FEATURES = ["N_x", "N_y", "N_z", "Inc", "ViewAng", "R_y", "ang"]
@@ -91,7 +92,8 @@ def from_campaign(path: str | Path, read_bag: Callable[..., list[Scan]],
     from ..campaign_file import load_campaign
 
     camp = load_campaign(path)
-    cdata = assemble(camp, lambda rec: read_bag(rec, camp.scanner))
+    # The loop traces residuals; it trains no model over the settings levels: uncovered levels are only noted.
+    cdata = assemble(camp, lambda rec: read_bag(rec, camp.scanner), require_levels=False)
     parts = []
     for it in cdata.scans:
         part = from_scans([it.scan], None, False, feature_names=feature_names, names=[it.label],
@@ -203,13 +205,10 @@ def detect_kind(path: Path) -> str:
                          "profile directory with RobPoses.rob)")
 
 
-def load_inputs(paths: list[str | Path], artifact_spec: str | None, feature_names: list[str] | None = None,
-                read_bag: Callable[[Path], list[Scan]] | None = None) -> LoopData:
-    """All inputs of one run (they must be of one kind). ``artifact_spec`` (parse_artifact syntax) is required for
-    measured files; for bags it overrides the scans' own artifact. ``feature_names``: the features of a given model
-    (bags: any registry features; measured sets: only ``MEASURED_FEATURES``, they declare no scan settings).
-    ``read_bag``: reads the scans of a bag (``xmetro_ros.ros.scan_io.read_scans``; injected so that this core
-    module needs no ROS)."""
+def check_inputs(paths: list[str | Path], artifact_spec: str | None, feature_names: list[str] | None = None
+                 ) -> tuple[str, Artifact | None, bool]:
+    """The checks of :func:`load_inputs` before any data is read: ``(kind, artifact, fit_center)`` of the inputs
+    (one kind for all)."""
     if not paths:
         raise LoopInputError("no input given")
     art, fit = (parse_artifact(artifact_spec) if artifact_spec else (None, False))
@@ -217,27 +216,49 @@ def load_inputs(paths: list[str | Path], artifact_spec: str | None, feature_name
     if len(kinds) > 1:
         raise LoopInputError(f"inputs of different kinds {sorted(kinds)}: run the loop once per kind")
     kind = kinds.pop()
-    from ..measured import MeasuredDataError
     if kind != "bag" and art is None:
         raise LoopInputError("measured inputs need --artifact (e.g. sphere:radius=50,center=fit)")
     if kind != "bag" and feature_names is not None and list(feature_names) != MEASURED_FEATURES:
         raise LoopInputError(f"measured {kind} data give only the features {MEASURED_FEATURES} (no scan settings); "
                              f"the model needs {list(feature_names)}")
-    parts = []
-    for p in paths:
-        try:
-            if kind == "bag":
-                if read_bag is None:
-                    raise LoopInputError("bag inputs need a bag reader (read_bag=xmetro_ros.ros.scan_io.read_scans)")
-                scans = read_bag(Path(p))
-                parts.append(from_scans(scans, art, fit, feature_names=feature_names,
-                                        names=[f"{Path(p).stem}#{i}" for i in range(len(scans))]))
-            elif art is None:  # checked above: measured inputs need an artifact
-                raise LoopInputError("measured inputs need --artifact")
-            elif kind == "nist":
-                parts.append(from_nist(Path(p), art, fit))
-            else:
-                parts.append(from_atc5(Path(p), art, fit))
-        except (OSError, UnicodeDecodeError, MeasuredDataError) as e:
-            raise LoopInputError(f"cannot read {p}: {e}") from e
-    return LoopData.concat(parts)
+    return kind, art, fit
+
+
+def load_path(p: str | Path, kind: str, art: Artifact | None, fit: bool, feature_names: list[str] | None = None,
+              read_bag: Callable[[Path], Iterable[Scan]] | None = None) -> LoopData:
+    """One input of :func:`load_inputs` (after :func:`check_inputs`) → LoopData. A bag's scans are taken one at a
+    time from ``read_bag`` (an iterator such as ``ros.scan_io.iter_scans`` keeps one raw scan in memory): the table
+    of ``from_scans`` over all of them, groups named ``<stem>#<index>``."""
+    from ..measured import MeasuredDataError
+
+    try:
+        if kind == "bag":
+            if read_bag is None:
+                raise LoopInputError("bag inputs need a bag reader (read_bag=xmetro_ros.ros.scan_io.read_scans)")
+            parts = []
+            for i, scan in enumerate(read_bag(Path(p))):
+                if (art or scan.artifact) is None:
+                    raise LoopInputError(f"scan {i} has no nominal artifact: give one with --artifact")
+                parts.append(from_scans([scan], art, fit, feature_names=feature_names, names=[f"{Path(p).stem}#{i}"]))
+            if not parts:
+                raise LoopInputError("no scans in the input")
+            return LoopData.concat(parts)
+        if art is None:  # checked by check_inputs: measured inputs need an artifact
+            raise LoopInputError("measured inputs need --artifact")
+        if kind == "nist":
+            return from_nist(Path(p), art, fit)
+        return from_atc5(Path(p), art, fit)
+    except (OSError, UnicodeDecodeError, MeasuredDataError) as e:
+        raise LoopInputError(f"cannot read {p}: {e}") from e
+
+
+def load_inputs(paths: list[str | Path], artifact_spec: str | None, feature_names: list[str] | None = None,
+                read_bag: Callable[[Path], Iterable[Scan]] | None = None) -> LoopData:
+    """All inputs of one run (they must be of one kind). ``artifact_spec`` (parse_artifact syntax) is required for
+    measured files; for bags it overrides the scans' own artifact. ``feature_names``: the features of a given model
+    (bags: any registry features; measured sets: only ``MEASURED_FEATURES``, they declare no scan settings).
+    ``read_bag``: reads the scans of a bag (``xmetro_ros.ros.scan_io.iter_scans`` or ``read_scans``; injected so
+    that this core module needs no ROS). The same table, input by input on Dask workers:
+    ``dataset_dask.load_inputs_dask``."""
+    kind, art, fit = check_inputs(paths, artifact_spec, feature_names)
+    return LoopData.concat([load_path(p, kind, art, fit, feature_names, read_bag) for p in paths])
