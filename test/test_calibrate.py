@@ -93,6 +93,21 @@ def test_calibrate_a_foreign_scanner_from_driver_recordings(tmp_path):
     for ax in "xyz":  # constant σ̂ (catboost): coverage on 3 new scans near the nominal 95 %
         assert 0.85 <= cov[ax]["coverage"] <= 1.0, (ax, cov[ax])
     assert "Interval coverage (95 %) on held-out scans" in (out / "report.md").read_text()
+    # report.html: self-contained, the same VDI/VDE 2634-2 figures per settings, deviation maps of held-out scans
+    # embedded (and written as PNG files)
+    page = (out / "report.html").read_text()
+    assert "VDI/VDE 2634-2" in page and "Interval coverage (95 %) on held-out scans" in page
+    for label, d in report["vdi2634"]["per_settings"].items():
+        pf, ps = (f"{d[k]['max_abs'] * 1e3:.1f}" for k in ("PF_mm", "PS_mm"))
+        assert label in page and f"<td>{pf}</td><td>{ps}</td>" in page
+    maps = report["deviation_maps"]
+    assert len(maps) == 2 and all(m["part"] == "coverage" and m["family"] == "catboost" for m in maps)
+    assert {m["scan"] for m in maps} <= set(held["coverage"])
+    assert page.count("src='data:image/png;base64,iVBOR") == len(maps)  # PNG signature, base64
+    for m in maps:
+        assert (out / m["file"]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and m["n_points"] > 500
+        assert 0 < m["mae_normal_um"] < 50 and all(0.5 < m["within_U"][ax] <= 1.0 for ax in "xyz")
+        assert m["file"] in (out / "report.md").read_text()
     # the model learned something real about this scanner (micro profile, 12 training measurements): held-out R² clearly
     # above zero on every axis, for held-out points and held-out configurations (measured 0.12-0.37)
     for split in ("point", "cloud"):
@@ -106,3 +121,44 @@ def test_a_campaign_error_is_a_clear_exit(tmp_path, capsys):
     (tmp_path / "c.yaml").write_text("format: xmetro-campaign/1\nscanner: {id: x}\n")
     assert main(["calibrate", str(tmp_path / "c.yaml"), "--out", str(tmp_path / "o")]) == 2
     assert "scanner needs an id and a description" in capsys.readouterr().out
+
+
+def test_calibrate_from_the_virtual_prior(tmp_path, capsys):
+    """``--prior``: the pointnet_multi network starts from a model set's network (here the packaged default) and is
+    fine-tuned on the campaign; the card records the prior; a prior of another layout is refused before any
+    recording is read."""
+    from xmetro_ros.apps.cli import main
+    from xmetro_ros.learn.prior import load_prior
+
+    sheet = {**SHEET, "effects": ScannerModel.load().effects}
+    (tmp_path / "ls-200.yaml").write_text(yaml.safe_dump(sheet))
+    _record(tmp_path / "run1.mcap", ScannerModel.from_dict(sheet, "ls-200.yaml"), 4, seed=30)
+    camp = {"format": "xmetro-campaign/1", "scanner": {"id": "ls-200", "description": "ls-200.yaml"},
+            "artifacts": [{"id": "ball_a", "diameter_mm": 2 * RADIUS}],
+            "recordings": [{"bag": "run1.mcap", "placements": [
+                {"artifact": "ball_a", "position": {"known": list(CENTRES["ball_a"]), "source": "CMM"}}]}]}
+    (tmp_path / "campaign.yaml").write_text(yaml.safe_dump(camp, sort_keys=False))
+    args = ["calibrate", str(tmp_path / "campaign.yaml"), "--families", "pointnet_multi", "--prior", "default",
+            "--max-points", "400"]
+    # the packaged model's compact layout (32 / 64 / 32) is not the micro profile's (16 / 32 / 16)
+    assert main([*args, "--out", str(tmp_path / "bad"), "--profile", "micro"]) == 2
+    msg = capsys.readouterr().out
+    assert "network layout differs from the pointnet_multi layout of --profile micro" in msg
+    assert "block1 [32] (profile [16])" in msg and not (tmp_path / "bad").exists()
+    assert main([*args[:-4], "--families", "catboost", "--prior", "default", "--out", str(tmp_path / "b2")]) == 2
+    assert "--families catboost has none" in capsys.readouterr().out
+    out = tmp_path / "cal"
+    assert main([*args, "--out", str(out), "--profile", "quick"]) == 0
+    card = ModelSet.load(out / "models" / "pointnet_multi").card
+    prior = load_prior("default")
+    assert card["prior"]["model_id"] == prior.card["id"] and card["prior"]["scanner"] == "xm-ls90"
+    assert card["trained_by"].endswith("--prior default") and card["models"][0]["params"]["warm_start"]
+    # fine-tuned FROM the prior: the network keeps the prior's input / target normalisation (a fresh fit takes the
+    # campaign's statistics), its weights moved
+    tuned = load_prior(out / "models" / "pointnet_multi").module
+    for buf in ("x_mean", "x_std", "y_scale"):
+        assert np.array_equal(getattr(tuned, buf).numpy(), getattr(prior.module, buf).numpy()), buf
+    assert not np.array_equal(tuned.block1[0].weight.detach().numpy(), prior.module.block1[0].weight.detach().numpy())
+    report = json.loads((out / "report.json").read_text())
+    assert report["prior"]["model_id"] == prior.card["id"] and "warm-started from the prior" in (
+        out / "report.html").read_text()

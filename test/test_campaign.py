@@ -43,8 +43,12 @@ def _scans(scanner: ScannerModel, n: int = 2, seed: int = 0) -> list:
     return out
 
 
-def _write(tmp: Path, placements_a: dict, placements_b: dict | None = None, **over: object) -> Path:
-    (tmp / "ls-200.yaml").write_text(yaml.safe_dump({**SHEET, "effects": ScannerModel.load().effects}))
+def _write(tmp: Path, placements_a: dict, placements_b: dict | None = None, sheet_levels: dict | None = None,
+           **over: object) -> Path:
+    sheet = {**SHEET, "effects": ScannerModel.load().effects}
+    if sheet_levels is not None:
+        sheet["settings_levels"] = sheet_levels
+    (tmp / "ls-200.yaml").write_text(yaml.safe_dump(sheet))
     (tmp / "run1.mcap").write_bytes(b"")
     places = [{"artifact": "ball_a", **placements_a}]
     if placements_b is not None:
@@ -177,3 +181,62 @@ def test_the_real_atc5_profiles_are_refused_with_the_reason(tmp_path, scanner):
     camp = load_campaign(_write(tmp_path, {"position": {"fit": [0, 0, 0]}}, {"position": {"fit": [0, 0, 0]}}))
     with pytest.raises(CampaignError, match=r"recording 0 .*scan 0 .*single laser profile.*cannot be estimated"):
         assemble(camp, lambda rec: [scan])
+
+
+@pytest.mark.parametrize("scans_b, match", [
+    ({"indices": [1, 5]}, r"recording 0 \(run1.mcap\) \(2 scans on /scan\): placement of artifact 'ball_b' "
+                          r"\(indices \[1, 5\]\): indices \[5\] match no scan \(the recording has 2 scans"),
+    ({"stamps_ns": [10**9, 7 * 10**9]}, r"recording 0 \(run1.mcap\).*'ball_b' .*stamps_ns \[7000000000\] match no "
+                                        r"scan header stamp"),
+    ({"from_s": 50.0}, r"recording 0 \(run1.mcap\).*'ball_b' .*window from_s 50.0 to_s None selects no scan"),
+])
+def test_listed_scans_missing_from_the_recording_are_errors(tmp_path, scanner, scans_b, match):
+    """A stamp / index the campaign lists but the bag does not hold is an error naming the recording, the
+    artifact and what is missing (never silently skipped)."""
+    scans = _scans(scanner)
+    camp = load_campaign(_write(tmp_path, {"position": {"fit": [30, -8, 0]}},
+                                {"position": {"fit": [-32, 6, 2]}, "scans": scans_b}))
+    with pytest.raises(CampaignError, match=match):
+        assemble(camp, lambda rec: scans)
+
+
+def test_listed_scans_select_them(tmp_path, scanner):
+    scans = _scans(scanner)
+    for sel in ({"indices": [1]}, {"stamps_ns": [2 * 10**9]}, {"from_s": 0.5}):
+        camp = load_campaign(_write(tmp_path, {"position": {"fit": [30, -8, 0]}},
+                                    {"position": {"fit": [-32, 6, 2]}, "scans": sel}))
+        data = assemble(camp, lambda rec: scans, check_normals=False)
+        assert data.checks.per_artifact == {"ball_a": 2, "ball_b": 1}, sel
+        assert [it.index for it in data.scans if it.placement.artifact == "ball_b"] == [1]
+
+
+LEVELS = {"lateral_density": [4.0, 6.0], "direction_density": [2.0, 3.0], "exposure_ms": [0.5, 2.0]}
+
+
+def test_declared_settings_levels_must_be_scanned(tmp_path, scanner):
+    """Levels the scanner description (or the campaign file) declares are the model's promise: one no scan shows
+    stops the run, naming it. Levels derived from the scans are covered by construction (a note only)."""
+    scans = _scans(scanner)  # settings (4, 2, 0.5) and (6, 3, 2)
+    fit = {"position": {"fit": [30, -8, 0]}}, {"position": {"fit": [-32, 6, 2]}}
+    wide = {**LEVELS, "lateral_density": [4.0, 6.0, 8.0]}
+    camp = load_campaign(_write(tmp_path, *fit, sheet_levels=wide))
+    with pytest.raises(CampaignError, match=r"settings levels declared by the scanner description .*ls-200.yaml are "
+                                            r"in no scan: lateral_density = 8 "):
+        assemble(camp, lambda rec: scans, check_normals=False)
+    # described levels all scanned: checked, kept
+    data = assemble(load_campaign(_write(tmp_path, *fit, sheet_levels=LEVELS)), lambda rec: scans,
+                    check_normals=False)
+    assert data.checks.levels_source == "scanner description" and not data.checks.levels_from_campaign
+    # the campaign file declares the levels it covers: they are checked and become the model's (over the
+    # description's wider grid)
+    data = assemble(load_campaign(_write(tmp_path, *fit, sheet_levels=wide, settings_levels=LEVELS)),
+                    lambda rec: scans, check_normals=False)
+    assert data.checks.levels_source == "campaign file" and data.scanner.settings_levels["lateral_density"] == (4, 6)
+    over = load_campaign(_write(tmp_path, *fit, settings_levels={**LEVELS, "exposure_ms": [0.5, 1.0, 2.0]}))
+    with pytest.raises(CampaignError, match=r"declared by the campaign campaign.yaml are in no scan: exposure_ms = 1 "):
+        assemble(over, lambda rec: scans, check_normals=False)
+    # nothing declared: the scans' levels are used, with a note
+    data = assemble(load_campaign(_write(tmp_path, *fit)), lambda rec: scans, check_normals=False)
+    assert data.checks.levels_source == "scans" and any("campaign's are used" in n for n in data.checks.notes)
+    with pytest.raises(CampaignError, match=r"settings_levels must give the levels of each of"):
+        load_campaign(_write(tmp_path, *fit, settings_levels={"exposure_ms": [0.5]}))

@@ -13,8 +13,10 @@ Checks (each failure names the recording, the scan and the cause, :class:`~.camp
 scans declare their settings (no defaulted settings) and, when they name one, the campaign's scanner id; every
 placement is found in the data with enough points; a free-radius fit agrees with the certified radius; the
 estimated surface normals agree with the nominal shape (a single laser profile cannot give them: refused with the
-reason); settings levels covered (two levels at least per setting, or the campaign's own levels taken as the
-scanner's when its description gives none).
+reason); every stamp / index a placement lists is a scan of its recording (and a time window selects one at
+least); settings levels covered: the levels the campaign file declares (``settings_levels``), else the scanner
+description's, must each appear in a scan (an error names the level); when neither declares any, the scans' own
+levels are taken as the scanner's; a setting with a single level is noted (its effect cannot be learned).
 """
 
 from __future__ import annotations
@@ -73,7 +75,8 @@ class DataChecks:
     n_measurements: int = 0
     per_artifact: dict[str, int] = field(default_factory=dict)
     settings_levels: dict[str, list[float]] = field(default_factory=dict)
-    levels_from_campaign: bool = False
+    levels_from_campaign: bool = False  # True: nothing declared levels, the scans' own are the model's
+    levels_source: str = ""  # who declared the checked levels: "campaign file", "scanner description" or "scans"
     min_points: int = 0
     median_normal_angle_deg: float = 0.0
     radius_deviation_max_mm: float = 0.0
@@ -93,6 +96,11 @@ class CampaignData:
     checks: DataChecks
     spacing: list[dict[str, Any]]
     scanner: Any
+
+
+def _has_level(values: Any, level: float) -> bool:
+    """True when ``level`` is one of ``values`` (relative tolerance 1e-6: settings travel as float32 or text)."""
+    return any(abs(v - level) <= 1e-6 * max(abs(level), 1e-9) for v in values)
 
 
 def _gate(radius: float) -> float:
@@ -181,8 +189,11 @@ def _apply_ball_bars(items: list[CampaignScan], campaign: Campaign) -> list[dict
 
 
 def assemble(campaign: Campaign, read_bag: Callable[[Recording], list[Scan]], *,
-             check_normals: bool = True, min_points: int = MIN_POINTS) -> CampaignData:
+             check_normals: bool = True, min_points: int = MIN_POINTS, require_levels: bool = True) -> CampaignData:
     """Read every recording (``read_bag``), match scans to placements, place the artifacts, run the checks.
+
+    ``require_levels`` (training, ``xmetro calibrate``): every declared settings level must be in a scan. False for
+    uses that train nothing over the levels (``xmetro loop`` on reference scans): uncovered levels are only noted.
 
     Raises:
         CampaignError: naming the recording, the scan and the cause.
@@ -201,6 +212,12 @@ def assemble(campaign: Campaign, read_bag: Callable[[Recording], list[Scan]], *,
         if not scans:
             raise CampaignError(f"{where}: holds no scan on {rec.scan_topic}")
         first = min(s.stamp_ns for s in scans)
+        stamps = [s.stamp_ns for s in scans]
+        for pl in rec.placements:
+            why = pl.scans.missing(stamps)
+            if why:
+                raise CampaignError(f"{where} ({len(scans)} scans on {rec.scan_topic}): placement of artifact "
+                                    f"{pl.artifact!r} ({pl.scans.describe()}): {why}")
         for si, scan in enumerate(scans):
             checks.n_scans_read += 1
             sw = f"{where} scan {si} (stamp {scan.stamp_ns} ns)"
@@ -265,15 +282,35 @@ def assemble(campaign: Campaign, read_bag: Callable[[Recording], list[Scan]], *,
     if missing:
         raise CampaignError(f"campaign {campaign.path.name}: artifacts {missing} were found in no scan")
     levels = {name: sorted({s[k] for s in settings_seen}) for k, name in enumerate(SETTING_NAMES)}
-    if scanner.settings_levels is None:
+    declared, by = ((campaign.settings_levels, f"the campaign {campaign.path.name}")
+                    if campaign.settings_levels is not None else
+                    (scanner.settings_levels, f"the scanner description {scanner.source}"))
+    if declared is None:
+        # Nothing declared (a data sheet gives no levels): the scans' own levels are the model's, by construction
+        # all covered; a note says so.
         scanner = scanner.with_levels({k: tuple(v) for k, v in levels.items()})
         checks.levels_from_campaign = True
+        checks.levels_source = "scans"
         checks.notes.append("the scanner description gives no settings levels: the campaign's are used")
     else:
-        unknown = {k: [v for v in levels[k] if v not in scanner.settings_levels[k]] for k in SETTING_NAMES}
+        # Declared levels are a promise that the model knows them (the node's recommender searches them): a level
+        # no scan shows would be extrapolated, so it stops the run, naming the level.
+        uncovered = {k: [v for v in declared[k] if not _has_level(levels[k], v)] for k in SETTING_NAMES}
+        uncovered = {k: v for k, v in uncovered.items() if v}
+        what = "; ".join(f"{k} = {', '.join(f'{v:g}' for v in vs)}" for k, vs in uncovered.items())
+        if uncovered and not require_levels:
+            checks.notes.append(f"settings levels declared by {by} in no scan: {what}")
+        elif uncovered:
+            raise CampaignError(f"campaign {campaign.path.name}: settings levels declared by {by} are in no scan: "
+                                f"{what} (the scans show {levels}). Record scans at these levels, or declare the "
+                                "levels the campaign covers (settings_levels in the campaign file)")
+        checks.levels_source = "campaign file" if campaign.settings_levels is not None else "scanner description"
+        if campaign.settings_levels is not None:
+            scanner = scanner.with_levels(campaign.settings_levels)
+        unknown = {k: [v for v in levels[k] if not _has_level(declared[k], v)] for k in SETTING_NAMES}
         unknown = {k: v for k, v in unknown.items() if v}
         if unknown:
-            checks.notes.append(f"settings outside the scanner's levels: {unknown}")
+            checks.notes.append(f"settings outside the levels declared by {by}: {unknown}")
     thin = [k for k, v in levels.items() if len(v) < 2]
     if thin:
         checks.notes.append(f"only one level of {thin}: the model cannot learn their effect")

@@ -8,6 +8,10 @@ Schema (docs/calibration.md gives a full example)::
       id: ls-200                      # must equal the recordings' ScannerSettings.scanner_id (when they give one)
       serial: SN-0042
       description: ls-200.yaml        # scanner YAML (model or data-sheet terms), relative to this file
+    settings_levels:                  # optional: the levels the campaign covers (each must be scanned); they
+      lateral_density: [4.0, 6.0]     # become the model's levels. Without them the description's levels are
+      direction_density: [2.0, 3.0]   # checked (each scanned), or, when it has none, the scans' own are used
+      exposure_ms: [0.5, 2.0]
     artifacts:
       - id: ball_a
         kind: sphere
@@ -32,7 +36,8 @@ Schema (docs/calibration.md gives a full example)::
           - artifact: ball_b
             position: {fit: [-60.0, 5.0, 0.0]}      # fitted with the certified size, from this guess
             scans: {from_s: 0.0, to_s: 12.5}       # optional: a window of header stamps (s from the first
-                                                   # scan), or {stamps_ns: [...]}, or {indices: [...]}
+                                                   # scan), or {stamps_ns: [...]}, or {indices: [...]};
+                                                   # every listed stamp / index must be a scan of the bag
 
 A *known* position (fixture, CMM, laser tracker) keeps every error of the scanner in the targets. A *fitted*
 position (certified size fixed, centre fitted per scan) absorbs every error that looks like a shift of the
@@ -134,6 +139,37 @@ class ScanSelection:
         t = (stamp_ns - first_stamp_ns) * 1e-9
         return (self.from_s is None or t >= self.from_s) and (self.to_s is None or t <= self.to_s)
 
+    def describe(self) -> str:
+        """How the selection reads in messages (``all scans``, ``indices [...]``, ...)."""
+        if self.indices is not None:
+            return f"indices {list(self.indices)}"
+        if self.stamps_ns is not None:
+            return f"stamps_ns {list(self.stamps_ns)}"
+        if self.from_s is None and self.to_s is None:
+            return "all scans"
+        return f"scans from_s {self.from_s} to_s {self.to_s}"
+
+    def missing(self, stamps_ns: list[int]) -> str:
+        """Why the selection does not fit a recording whose scans (in recording order) have ``stamps_ns``: the
+        listed indices / stamps that match no scan, or a window that selects no scan; "" when it fits."""
+        n = len(stamps_ns)
+        if self.indices is not None:
+            bad = [i for i in self.indices if not 0 <= i < n]
+            return f"indices {bad} match no scan (the recording has {n} scans, indices 0-{n - 1})" if bad else ""
+        if self.stamps_ns is not None:
+            have = set(stamps_ns)
+            bad = [s for s in self.stamps_ns if s not in have]
+            if bad:
+                span = f"{min(stamps_ns)}-{max(stamps_ns)} ns" if stamps_ns else "none"
+                return f"stamps_ns {bad} match no scan header stamp (the recording's {n} scans span {span})"
+            return ""
+        first = min(stamps_ns) if stamps_ns else 0
+        if not any(self.selects(i, s, first) for i, s in enumerate(stamps_ns)):
+            last = (max(stamps_ns) - first) * 1e-9 if stamps_ns else 0.0
+            return (f"the window from_s {self.from_s} to_s {self.to_s} selects no scan (the recording's {n} scans "
+                    f"span 0-{last:.3f} s from the first)")
+        return ""
+
 
 @dataclass(frozen=True)
 class Placement:
@@ -182,10 +218,15 @@ class Campaign:
     artifacts: dict[str, ArtifactSpec]
     ball_bars: list[BallBar]
     recordings: list[Recording]
+    #: The settings levels the campaign declares it covers (optional ``settings_levels`` of the file): every one
+    #: must be scanned, and they become the model's scanner levels (over the description's).
+    settings_levels: dict[str, tuple[float, ...]] | None = None
 
     def card(self) -> dict[str, Any]:
         """What a model card records of the campaign (hash, scanner, artifacts and certificates, recordings)."""
         return {"format": CAMPAIGN_FORMAT, "file": self.path.name, "sha256": self.sha256,
+                "settings_levels": None if self.settings_levels is None else
+                {k: list(v) for k, v in self.settings_levels.items()},
                 "scanner": {"id": self.scanner_id, "serial": self.scanner_serial, "description": self.scanner.source},
                 "artifacts": [a.to_dict() for a in self.artifacts.values()],
                 "ball_bars": [b.to_dict() for b in self.ball_bars],
@@ -278,6 +319,23 @@ def _placement(d: Any, artifacts: dict[str, ArtifactSpec], where: str) -> Placem
     return Placement(aid, guess=_vec(pos["fit"], "position.fit", where), scans=sel)
 
 
+def _levels(d: Any, where: str) -> dict[str, tuple[float, ...]] | None:
+    from .scanner import SETTING_NAMES
+
+    if d is None:
+        return None
+    if not isinstance(d, dict) or set(d) != set(SETTING_NAMES):
+        raise CampaignError(f"{where}: settings_levels must give the levels of each of {list(SETTING_NAMES)}, got "
+                            f"{sorted(d) if isinstance(d, dict) else d!r}")
+    out = {}
+    for k in SETTING_NAMES:
+        v = d[k]
+        if not isinstance(v, (list, tuple)) or not v:
+            raise CampaignError(f"{where}: settings_levels.{k} must be a non-empty list of numbers, got {v!r}")
+        out[k] = tuple(sorted({_num(x, f"settings_levels.{k}", where, True) for x in v}))
+    return out
+
+
 def load_campaign(path: str | Path) -> Campaign:
     """Read and check a campaign file (schema in the module docstring).
 
@@ -346,4 +404,4 @@ def load_campaign(path: str | Path) -> Campaign:
         raise CampaignError(f"{where}: scanner serial {sc['serial']!r} differs from its description's "
                             f"{scanner.serial!r}")
     return Campaign(p, hashlib.sha256(raw).hexdigest(), scanner.id, str(sc.get("serial", scanner.serial) or ""),
-                    scanner, artifacts, bars, recordings)
+                    scanner, artifacts, bars, recordings, _levels(d.get("settings_levels"), where))

@@ -13,9 +13,16 @@
    ``CALIBRATION_FRACTION`` of them calibrate the split-conformal multipliers, a further ``COVERAGE_FRACTION``
    judge the 95 % intervals (coverage per axis); the rest trains. The card also gets the multivariate domain of
    the training rows (``domain_mv``);
-5. write ``DIR/report.md`` and ``DIR/report.json``: per settings the VDI/VDE 2634-2 probing form / size and sphere
-   spacing figures, the data checks, the models' accuracy on held-out points and held-out configurations, and
-   the interval coverage on the held-out scans.
+5. write ``DIR/report.json``, ``DIR/report.md`` and the self-contained ``DIR/report.html``
+   (:mod:`xmetro_ros.apps.calibrate_report`): per settings the VDI/VDE 2634-2 probing form / size and sphere
+   spacing figures, the data checks, the models' accuracy on held-out points and held-out configurations, the
+   interval coverage on the held-out scans, and deviation maps (predicted vs actual error along the sphere's
+   normal) of held-out scans (``DIR/deviation_maps/*.png``, embedded in the HTML).
+
+``--prior MODEL_DIR`` (or ``default``, the packaged model set): the ``pointnet_multi`` network starts from that
+model set's network (weights and normalisation, rebuilt from its ONNX: :mod:`xmetro_ros.learn.prior`) and is
+fine-tuned on the campaign's scans; a prior of other features or another layout than ``--profile``'s is refused
+before any data is read. The card's ``prior`` records it.
 
 Lengths in mm in the reports. Exit code 2 on a campaign error, with its message.
 """
@@ -53,6 +60,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "head; catboost gets a constant σ̂)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--max-points", type=int, default=2000, help="points sampled per measurement")
+    p.add_argument("--prior", default=None, metavar="MODEL_DIR|default",
+                   help="warm-start the pointnet_multi network from this model set (a virtual scanner's, or "
+                   "'default': the packaged one) and fine-tune it on the campaign; its layout must be --profile's")
     p.add_argument("--no-uncertainty", action="store_true",
                    help="train on every scan; no conformal calibration nor coverage (the card has no 'uncertainty')")
     p.set_defaults(func=run)
@@ -111,17 +121,31 @@ def _uncertainty(model_dirs: dict[str, Path], train: Any, cal: Any, cov: Any, ca
 
 def calibrate(campaign_path: str | Path, out: str | Path, *, profile: str = "quick",
               families: tuple[str, ...] = DEFAULT_FAMILIES, seed: int = 0, max_points: int = 2000,
-              uncertainty: bool = True, log: Any = print) -> dict[str, Any]:
-    """Run the whole calibration (module docstring); return the report dict. Raises CampaignError."""
+              uncertainty: bool = True, prior: str | Path | None = None, log: Any = print) -> dict[str, Any]:
+    """Run the whole calibration (module docstring); return the report dict. Raises CampaignError, or PriorError
+    (a ValueError) for a ``prior`` that cannot warm-start this calibration's network."""
     from .. import vdi2634
     from ..campaign_data import assemble
     from ..campaign_file import load_campaign
     from ..dataset import build_table
     from ..features import STUDY_FEATURES
+    from ..learn.families import get_profile
+    from ..learn.prior import PRIOR_FAMILY, PriorError, check_prior, load_prior
     from ..learn.study import run_study
+    from ..learn.train import _pointnet_config
+    from .calibrate_report import deviation_maps, markdown, write_html
 
     t0 = time.perf_counter()
     out = Path(out)
+    warm = None
+    if prior is not None:  # checked before any recording is read: a wrong prior fails in a second
+        if PRIOR_FAMILY not in families:
+            raise PriorError(f"--prior warm-starts the {PRIOR_FAMILY} network; --families {','.join(families)} has "
+                             "none")
+        warm = load_prior(prior)
+        check_prior(warm, list(STUDY_FEATURES), _pointnet_config(PRIOR_FAMILY, get_profile(profile), 1), profile)
+        log(f"prior {warm.card.get('id')} ({warm.dir}, scanner {warm.to_dict()['scanner']}): {PRIOR_FAMILY} "
+            "fine-tuned from it")
     camp = load_campaign(campaign_path)
     log(f"campaign {camp.path.name}: scanner {camp.scanner_id} ({camp.scanner_serial or 'no serial'}), "
         f"{len(camp.artifacts)} spheres, {len(camp.ball_bars)} ball bars, {len(camp.recordings)} recordings")
@@ -149,18 +173,21 @@ def calibrate(campaign_path: str | Path, out: str | Path, *, profile: str = "qui
         "scanner": {"id": camp.scanner_id, "serial": camp.scanner_serial, "description": camp.scanner.source},
         "campaign": camp.card(), "data_checks": data.checks.to_dict(),
         "positions": "fitted (location errors removed from the targets)" if fitted else "known",
-        "trained_by": f"xmetro calibrate {camp.path.name} --profile {profile} --seed {seed}",
+        "trained_by": f"xmetro calibrate {camp.path.name} --profile {profile} --seed {seed}"
+                      + (f" --prior {prior}" if warm is not None else ""),
         "held_out_scans": split_doc,
     }
+    if warm is not None:
+        card_extra["prior"] = warm.to_dict()
     metrics = run_study(table, manifest, profile, seed, out, families=families, log=log, timing=False,
-                        card_extra=card_extra)
+                        card_extra=card_extra, warm_start=None if warm is None else {PRIOR_FAMILY: warm.module})
     model_dirs = {fam: out / "models" / fam for fam in families}
     unc = (_uncertainty(model_dirs, table, table_of("calibration"), table_of("coverage"),
                         split_doc["calibration"], log) if parts["calibration"] else {})
     probing_rows = [{"recording": it.recording, "scan": it.index, "artifact": it.placement.artifact,
                      "settings": it.scan.settings.label(), "position": "fitted" if it.placement.fitted else "known",
                      **it.figures.to_dict()} for it in data.scans]
-    report = {
+    report: dict[str, Any] = {
         "schema": "xmetro-calibration-report/1",
         "campaign": camp.card(),
         "checks": data.checks.to_dict(),
@@ -172,62 +199,17 @@ def calibrate(campaign_path: str | Path, out: str | Path, *, profile: str = "qui
         "uncertainty": {"split": "by scan (seeded): " + ", ".join(f"{len(v)} measurements {k}" for k, v in
                                                                     parts.items()),
                         "held_out": split_doc, "families": unc},
-        "wall_s": round(time.perf_counter() - t0, 1),
+        "prior": None if warm is None else warm.to_dict(),
     }
+    maps = deviation_maps(data, parts, model_dirs, out, seed=seed)
+    report["deviation_maps"] = [{k: v for k, v in m.items() if k != "png_b64"} for m in maps]
+    report["wall_s"] = round(time.perf_counter() - t0, 1)
     (out / "report.json").write_text(json.dumps(report, indent=2, default=float))
-    (out / "report.md").write_text(_markdown(report))
-    log(f"wrote {out / 'report.md'} and model sets under {out / 'models'} ({report['wall_s']:.0f} s)")
+    (out / "report.md").write_text(markdown(report))
+    write_html(out / "report.html", report, maps)
+    log(f"wrote {out / 'report.html'}, report.md, report.json and model sets under {out / 'models'} "
+        f"({report['wall_s']:.0f} s)")
     return report
-
-
-def _markdown(r: dict[str, Any]) -> str:
-    c = r["campaign"]
-    lines = [f"# Calibration of scanner {c['scanner']['id']} (serial {c['scanner']['serial'] or '-'})", "",
-             f"Campaign `{c['file']}` (sha256 `{c['sha256'][:16]}…`); positions: {r['positions']}.", "",
-             "## Certified artifacts", "", "| id | kind | size (mm) | U (mm) | certificate |", "|---|---|---|---|---|"]
-    for a in c["artifacts"]:
-        lines.append(f"| {a['id']} | sphere | Ø {a['diameter_mm']:.4f} | {a['size_uncertainty_mm']:.4f} | "
-                     f"{a['certificate']} |")
-    for b in c["ball_bars"]:
-        lines.append(f"| {b['id']} | ball bar {'–'.join(b['spheres'])} | L {b['distance_mm']:.4f} | "
-                     f"{b['distance_uncertainty_mm']:.4f} | {b['certificate']} |")
-    ch = r["checks"]
-    lines += ["", "## Data checks", "", f"- {ch['n_measurements']} measurements from {ch['n_scans_read']} scans; "
-              f"per artifact {ch['per_artifact']}", f"- settings levels {ch['settings_levels']}"
-              + (" (taken from the campaign)" if ch["levels_from_campaign"] else ""),
-              f"- median angle estimated vs nominal normals {ch['median_normal_angle_deg']:.1f}°; largest free-fit "
-              f"radius deviation {ch['radius_deviation_max_mm'] * 1e3:.1f} µm"]
-    lines += [f"- {n}" for n in ch["notes"]]
-    lines += ["", "## VDI/VDE 2634-2 figures per settings (largest |value|, µm)", "",
-              "| settings | PF | PS | SD | n |", "|---|---|---|---|---|"]
-    for s, d in r["vdi2634"]["per_settings"].items():
-        def f(k: str, d: dict = d) -> str:
-            return f"{d[k]['max_abs'] * 1e3:.1f}" if k in d else "–"
-        n = d.get("PF_mm", {}).get("n", 0)
-        lines.append(f"| {s} | {f('PF_mm')} | {f('PS_mm')} | {f('SD_mm')} | {n} |")
-    lines += ["", "## Models (MAE µm, mean over the test draws; R²)", "",
-              "| split | family | X | Y | Z |", "|---|---|---|---|---|"]
-    for split, fams in r["models"].items():
-        for fam, axes in fams.items():
-            cells = [f"{axes[a]['mae']['mean'] * 1e3:.2f} (R² {axes[a]['r2']['mean']:.2f})" for a in ("x", "y", "z")]
-            lines.append(f"| {split} | {fam} | " + " | ".join(cells) + " |")
-    u = r["uncertainty"]
-    lines += ["", "## Interval coverage (95 %) on held-out scans", "", f"Split {u['split']}.", ""]
-    if r["positions"] != "known":
-        lines += ["Positions are fitted: coverage is judged on fitted-centre targets; location errors are in neither "
-                  "the model nor its intervals (docs/calibration.md §7).", ""]
-    if not u["families"]:
-        lines.append("No uncertainty calibration (too few scans, or --no-uncertainty).")
-    else:
-        lines += ["| family | multipliers x/y/z | coverage X | Y | Z | mean U X/Y/Z (µm) |",
-                  "|---|---|---|---|---|---|"]
-        for fam, d in u["families"].items():
-            cov = d["coverage"]
-            cells = [f"{cov[a]['coverage'] * 100:.1f} %" if "coverage" in cov[a] else "–" for a in ("x", "y", "z")]
-            us = "/".join(f"{cov[a]['mean_U'] * 1e3:.1f}" if "mean_U" in cov[a] else "–" for a in ("x", "y", "z"))
-            lines.append(f"| {fam} | {'/'.join(f'{k:.2f}' for k in d['multiplier'])} | " + " | ".join(cells)
-                         + f" | {us} |")
-    return "\n".join(lines) + "\n"
 
 
 def run(args: argparse.Namespace) -> int:
@@ -237,7 +219,7 @@ def run(args: argparse.Namespace) -> int:
     fams = tuple(f.strip() for f in args.families.split(",") if f.strip())
     try:
         calibrate(args.campaign, args.out, profile=args.profile, families=fams, seed=args.seed,
-                  max_points=args.max_points, uncertainty=not args.no_uncertainty)
+                  max_points=args.max_points, uncertainty=not args.no_uncertainty, prior=args.prior)
     except (CampaignError, ValueError, FileNotFoundError) as e:
         print(f"xmetro calibrate: error: {e}")
         return 2

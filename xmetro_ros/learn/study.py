@@ -148,10 +148,12 @@ def run_study(
     log: Callable[[str], None] = print,
     timing: bool = True,
     card_extra: dict | None = None,
+    warm_start: dict[str, Any] | None = None,
 ) -> dict:
     """Run the protocol for ``families`` on ``table`` (X, y mm, cloud_id, oracle, feature_names); write the
     artefacts listed in the module doc; return the metrics dict. ``card_extra``: more card entries (the scanner,
-    a calibration campaign, ``trained_by``), over the defaults.
+    a calibration campaign, ``trained_by``), over the defaults. ``warm_start``: per PointNet family a fitted
+    network both splits fine-tune instead of starting from random weights (``xmetro calibrate --prior``).
 
     Model ids are ``<family>-<profile>-s<seed>-<data hash>``: the same data and seed give the same id, other data
     another one (ids no longer collide across runs)."""
@@ -196,7 +198,7 @@ def run_study(
                 prev = point_models.get(fam)
                 params = prev[0].params if (prev and split_name != "point") else None
                 fitted.append(fit_model(fam, X[tr], y[tr], seed=seed, profile=prof, groups=cid[tr], params=params,
-                                        threads=threads))
+                                        threads=threads, warm_start=(warm_start or {}).get(fam)))
             else:
                 for a in range(3):
                     prev = point_models.get(fam)

@@ -112,11 +112,13 @@ def fit_model(
     params: dict | None = None,
     space: dict | None = None,
     threads: int = 1,
+    warm_start: Any = None,
 ) -> FittedModel:
     """Fit ``family`` on X (M, F) and y (M,) mm (or (M, 3) for ``pointnet_multi``).
 
     params: skip the search and use these hyper-parameters. space: override the family's search space.
     groups: cloud id per row (PointNet sets never mix clouds; its head search folds by cloud).
+    warm_start: PointNet families only: a fitted PointNetReg of the same layout to fine-tune (learn/prior.py).
     Raises UnknownFamilyError, or ValueError for empty/bad data or a search space that cannot be sampled.
     """
     check_family(family)
@@ -130,9 +132,11 @@ def fit_model(
 
     with threadpool_limits(max(1, threads)):  # BLAS threads: the machine is shared; oversubscription is slower
         if family in POINTWISE_FAMILIES:
+            if warm_start is not None:
+                raise ValueError(f"{family}: a warm start applies to the PointNet families only")
             est, best, cv = _fit_pointwise(family, X, y2[:, 0] * TARGET_SCALE, seed, prof, params, space, threads)
         else:
-            est, best, cv = _fit_pointnet(family, X, y2, groups, seed, prof, params, threads)
+            est, best, cv = _fit_pointnet(family, X, y2, groups, seed, prof, params, threads, warm_start)
     return FittedModel(family, tuple(axes), est, best, cv, time.perf_counter() - t0)
 
 
@@ -170,7 +174,11 @@ def _pointnet_config(family: str, prof: Profile, threads: int, head: tuple[int, 
                           threads=threads)
 
 
-def _fit_pointnet(family, X, y2, groups, seed, prof, params, threads):
+def _fit_pointnet(family, X, y2, groups, seed, prof, params, threads, warm_start=None):
+    if warm_start is not None:  # fine-tune the prior: its layout, no head search
+        model = PointNetRegressor(_pointnet_config(family, prof, threads), seed, warm_start=warm_start)
+        model.fit(X, y2, groups)
+        return model, {**model.get_params(), "warm_start": True}, None
     if params is not None and "head" in params:
         head, cv = tuple(params["head"]), None
     elif family == "pointnet" and len(prof.pointnet_grid) > 1:
