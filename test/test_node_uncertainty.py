@@ -264,3 +264,58 @@ def test_uncalibrated_model_set_publishes_nan_U_with_the_reason(tmp_path):
     req.output = Explain.Request.OUTPUT_UNCERTAINTY
     r = core.explain(req)
     assert not r.success and "no uncertainty calibration" in r.message
+
+
+def test_guard_banded_classes_all_occur_through_a_node_with_a_sharp_model(tmp_path):
+    """With the shipped model U exceeds the spread of |d|, so no tolerance gives non-conforming points under the
+    guard-banded rule. A copy of the model set whose conformal multipliers are scaled by 0.02 (U ~50× smaller,
+    the same d) makes all three classes occur, judged through a real node in its own namespace: every point's
+    class from its flags equals the definition recomputed from the published d and U, the counts match
+    ScanQuality, and the verdict is RESCAN (half the points non-conforming)."""
+    import json
+    import shutil
+
+    from rclpy.node import Node
+
+    from xmetro_ros.resources import default_model_dir
+
+    d = tmp_path / "sharp"
+    shutil.copytree(os.environ.get("XMETRO_TEST_MODEL_DIR") or default_model_dir(), d)
+    card = json.loads((d / "card.json").read_text())
+    card["uncertainty"]["multiplier"] = [0.02 * m for m in card["uncertainty"]["multiplier"]]
+    (d / "card.json").write_text(json.dumps(card))
+    scan = _scan(160 * S, seed=11)
+    # the tolerance: the median |d| of the shipped model on this scan (d does not depend on the multipliers)
+    overrides = [Parameter("min_valid_points", value=50), Parameter("model_dir", value=str(d))]
+    node_sp = NodeSpinner(lambda ctx: XmetroNode(context=ctx, namespace="/sharp", parameter_overrides=overrides))
+    cli_sp = NodeSpinner(lambda ctx: Node("xmetro_sharp_tester", namespace="/sharp", context=ctx))
+    try:
+        node, client = node_sp.node, NodeClient(cli_sp.node, target="sharp/xmetro_node")
+        client.wait_matched()
+        _q0, _d0, _c0, a0 = _judge(node, client, scan, 160 * S)
+        tol = float(np.nanmedian(a0["dnorm"].astype(np.float64)))
+        assert all(r.successful for r in node.set_parameters([Parameter("tolerance", value=tol)]))
+        q, _dev, _corr, a = _judge(node, client, _scan(161 * S, seed=11), 161 * S)
+    finally:
+        cli_sp.close()
+        node_sp.close()
+    flags = a["flags"].astype(np.uint16)
+    fin = np.isfinite(a["dx"])
+    got = _classes_from_flags(flags)[fin]
+    want = _classes_from_published(a, tol, "guard_banded")[fin]
+    dd = np.column_stack([a["dx"], a["dy"], a["dz"]]).astype(np.float64)[fin]
+    uu = np.column_stack([a["ux"], a["uy"], a["uz"]]).astype(np.float64)[fin]
+    dn, un = np.linalg.norm(dd, axis=1), np.linalg.norm(uu, axis=1)
+    edge = np.minimum(np.abs(dn + un - tol), np.abs(dn - un - tol)) < 1e-9
+    assert np.array_equal(got[~edge], want[~edge]) and edge.mean() < 0.001
+    counts = [int((got == c).sum()) for c in (fl.CONFORMING, fl.NON_CONFORMING, fl.UNDECIDED)]
+    assert all(c > 0 for c in counts), counts
+    assert [q.points_conforming, q.points_non_conforming, q.points_undecided] == counts
+    assert counts[1] / q.points_valid > node_params_default("rescan_over_tolerance_fraction")
+    assert q.verdict == ScanQuality.VERDICT_RESCAN, q.message
+
+
+def node_params_default(name: str) -> float:
+    from xmetro_ros.ros.params import PARAMS
+
+    return float(next(p.default for p in PARAMS if p.name == name))
