@@ -39,7 +39,7 @@ def test_wheel_carries_interfaces_libraries_config_and_model(tmp_path: Path):
         assert f"{data}/data/lib/libxmetro_ros__{lib}.so" in names, lib
     for ext in ("rosidl_typesupport_c", "rosidl_typesupport_fastrtps_c", "rosidl_typesupport_introspection_c"):
         assert any(n.startswith(f"xmetro_ros/xmetro_ros_s__{ext}") and n.endswith(".so") for n in names), ext
-    for must in ("xmetro_ros/msg/_scan_quality.py", "xmetro_ros/msg/_scanner_settings.py", "xmetro_ros/srv/_explain.py",
+    for must in ("xmetro_ros/msg/_scan_quality.py", "xmetro_ros/msg/_reference_check.py", "xmetro_ros/msg/_scanner_settings.py", "xmetro_ros/srv/_explain.py",
                  "xmetro_ros/srv/_recommend_settings.py", "xmetro_ros/models/default/card.json",
                  "xmetro_ros/config/xmetro.yaml", "xmetro_ros/config/fastdds_localhost.xml",
                  f"{data}/data/share/ament_index/resource_index/packages/xmetro_ros",
@@ -59,6 +59,10 @@ def test_wheel_carries_interfaces_libraries_config_and_model(tmp_path: Path):
         assert any(r.startswith(heavy) for r in train), (heavy, train)
     for ros in ("ros-rclpy", "ros-action-msgs", "ros-lifecycle-msgs", "onnxruntime"):
         assert any(r.startswith(ros) for r in runtime), (ros, runtime)
+    fleet = [r for r in requires if "extra == \"fleet\"" in r]
+    for dist in ("dask", "pyarrow", "pandas"):  # xmetro fleet / --workers only: the [fleet] extra
+        assert not any(r.split(";")[0].strip().startswith(dist) for r in runtime), (dist, runtime)
+        assert any(r.startswith(dist) for r in fleet), (dist, fleet)
 
 
 def _package_xml_version() -> str:

@@ -27,7 +27,7 @@ PIP=("$VENV/bin/pip" install -q -c tools/constraints.txt)
 # Build requirements of our msg/srv (CMake + rosidl against the ROS 2 wheels), then the package itself without build
 # isolation (reuses them: ~15 s instead of ~45 s).
 "${PIP[@]}" -r tools/build-requirements.txt
-"${PIP[@]}" --no-build-isolation -e '.[test,train]'
+"${PIP[@]}" --no-build-isolation -e '.[test,train,fleet]'
 "$VENV/bin/python" -c "import xmetro_ros.msg, xmetro_ros.srv, rclpy, open3d, onnxruntime, torch; \
 assert torch.version.cuda is None, 'a CUDA build of torch was installed: CPU only'; \
 print('setup: ok, torch', torch.__version__)"

@@ -208,7 +208,10 @@ def dask_client(scheduler: str | None = None, workers: int | None = None,
     cluster of ``workers`` worker processes (default: one per core) on the loopback interface, closed on exit."""
     import logging
 
-    from distributed import Client, LocalCluster
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError as e:  # the [fleet] extra: the node and the single-process tools do not need Dask
+        raise SystemExit(f"Dask is not installed ({e}): pip install 'xmetro_ros[fleet]'") from e
 
     if scheduler:
         with Client(scheduler) as client:
