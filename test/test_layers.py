@@ -152,6 +152,27 @@ def test_offline_predict_creates_no_dds_participant(tmp_path, bag):
     assert (tmp_path / "out.mcap").stat().st_size > 0
 
 
+def test_offline_simulate_and_loop_create_no_dds_participant(tmp_path):
+    """``xmetro simulate`` and ``xmetro loop`` (reading the bag it wrote) never start DDS either."""
+    sim, loop = tmp_path / "sim", tmp_path / "loop"
+    code = (
+        "import sys, rclpy\n"
+        "def _no(*a, **k): raise AssertionError('rclpy.init called by an offline tool')\n"
+        "rclpy.init = _no\n"
+        "from xmetro_ros.apps.cli import main\n"
+        f"rc = main(['simulate', '--quick', '--artifact', 'sphere:radius=12.5', '--artifact', 'sphere:radius=12.5',\n"
+        f"           '--out', {str(sim)!r}])\n"
+        "assert rc in (0, None), rc\n"
+        f"rc = main(['loop', {str(sim / 'campaign.mcap')!r}, '--artifact', 'sphere:radius=12.5', '--max-iter', '1',\n"
+        f"           '--n-perm', '20', '--iterations', '50', '--out', {str(loop)!r}])\n"
+        "assert rc in (0, None), rc\n"
+        "print(sorted(k for k in ('rclpy.node', 'rclpy.executors', 'xmetro_ros.apps.replay', 'xmetro_ros.ros.node')\n"
+        "             if k in sys.modules))\n"
+    )
+    assert _run(code) == "[]"
+    assert (loop / "report.json").stat().st_size > 0
+
+
 def test_every_package_import_resolves():
     """Imports of our own modules (also lazy ones inside functions, which only fail when that path runs) name
     modules that exist."""
