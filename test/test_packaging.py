@@ -39,7 +39,8 @@ def test_wheel_carries_interfaces_libraries_config_and_model(tmp_path: Path):
         assert f"{data}/data/lib/libxmetro_ros__{lib}.so" in names, lib
     for ext in ("rosidl_typesupport_c", "rosidl_typesupport_fastrtps_c", "rosidl_typesupport_introspection_c"):
         assert any(n.startswith(f"xmetro_ros/xmetro_ros_s__{ext}") and n.endswith(".so") for n in names), ext
-    for must in ("xmetro_ros/msg/_scan_quality.py", "xmetro_ros/msg/_reference_check.py", "xmetro_ros/msg/_scanner_settings.py", "xmetro_ros/srv/_explain.py",
+    for must in ("xmetro_ros/msg/_scan_quality.py", "xmetro_ros/msg/_reference_check.py",
+                 "xmetro_ros/msg/_scanner_settings.py", "xmetro_ros/srv/_explain.py",
                  "xmetro_ros/srv/_recommend_settings.py", "xmetro_ros/models/default/card.json",
                  "xmetro_ros/config/xmetro.yaml", "xmetro_ros/config/fastdds_localhost.xml",
                  f"{data}/data/share/ament_index/resource_index/packages/xmetro_ros",

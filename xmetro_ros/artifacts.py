@@ -198,7 +198,11 @@ def artifact_from_dict(d: dict) -> Artifact:
         return Cylinder(float(d["radius"]), tuple(d.get("center", (0, 0, 0))), tuple(d.get("axis", (0, 1, 0))))
     if kind == "plane":
         return Plane(tuple(d.get("point", (0, 0, 0))), tuple(d.get("normal", (0, 0, 1))))
-    raise ArtifactSpecError(f"unknown artifact kind {kind!r} (known: sphere, cylinder, plane)")
+    if kind == "mesh":  # a triangle mesh (xmetro_ros.mesh; its queries need open3d)
+        from .mesh import mesh_from_dict
+
+        return mesh_from_dict(d)
+    raise ArtifactSpecError(f"unknown artifact kind {kind!r} (known: sphere, cylinder, plane, mesh)")
 
 
 def parse_artifact(spec: str) -> tuple[Artifact, bool]:

@@ -35,7 +35,8 @@ Domain: ``in_domain(X) -> (M,) bool`` (default: the model set's ``in_domain`` wh
 A time budget (``max_seconds``) stops the search after the orientation in progress; the current orientation is
 always evaluated first, and the note says when the search was cut short.
 
-Limits (honest): no occlusion by other parts of the workpiece, no reachability of the pose; the normals are those
+Limits (honest): no occlusion by other parts of the workpiece unless its CAD is given (``occluder``), no
+reachability of the pose; the normals are those
 of the current scan; the keep-current rule does not see a model bias shared by the whole region.
 """
 
@@ -154,12 +155,21 @@ def orientation_grid(max_tilt: float, tilt_steps: int, max_turn: float, turn_ste
     return [rotation_xyz(a, b, c) for c in turns for a in tilts for b in tilts]
 
 
-def coverage_mask(ctx: Any, grazing_incidence_deg: float, grazing_view_deg: float) -> np.ndarray:
-    """Points lit and seen at non-grazing angles under the context's geometry."""
+def coverage_mask(ctx: Any, grazing_incidence_deg: float, grazing_view_deg: float, occluder: Any = None
+                  ) -> np.ndarray:
+    """Points lit and seen at non-grazing angles under the context's geometry; with an ``occluder`` (an artifact
+    with ``project`` and ``intersect``, e.g. the part's CAD ``mesh.MeshArtifact`` in the scan frame) also neither
+    in its laser shadow nor hidden from the camera by it (rays from the point's projection on it along L and V)."""
     n = np.asarray(ctx.normals, dtype=np.float64)
-    cos_i = np.einsum("ij,ij->i", n, np.asarray(ctx.L, dtype=np.float64))
-    cos_v = np.einsum("ij,ij->i", n, np.asarray(ctx.V, dtype=np.float64))
-    return (cos_i > np.cos(np.radians(grazing_incidence_deg))) & (cos_v > np.cos(np.radians(grazing_view_deg)))
+    L, V = np.asarray(ctx.L, dtype=np.float64), np.asarray(ctx.V, dtype=np.float64)
+    cos_i = np.einsum("ij,ij->i", n, L)
+    cos_v = np.einsum("ij,ij->i", n, V)
+    m = (cos_i > np.cos(np.radians(grazing_incidence_deg))) & (cos_v > np.cos(np.radians(grazing_view_deg)))
+    if occluder is not None and m.any():
+        i = np.flatnonzero(m)
+        p = occluder.project(np.asarray(ctx.points, dtype=np.float64)[i])
+        m[i] = ~np.isfinite(occluder.intersect(p, L[i])) & ~np.isfinite(occluder.intersect(p, V[i]))
+    return m
 
 
 def p95_interval_halfwidth(values: np.ndarray) -> np.ndarray:
@@ -248,7 +258,7 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
               in_domain: Callable[[np.ndarray], np.ndarray] | bool | None = None, max_out_of_domain: float = 0.05,
               keep_current: bool = True,
               progress: Callable[[RecommendProgress], None] | None = None,
-              cancelled: Callable[[], bool] | None = None) -> Recommendation:
+              cancelled: Callable[[], bool] | None = None, occluder: Any = None) -> Recommendation:
     """Search settings × orientations for the region ``rows`` of a judged scan (see the module docstring).
 
     Args:
@@ -272,6 +282,8 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
         keep_current: recommend the current set-up unless the best predicted gain exceeds its uncertainty.
         progress: called after each orientation with a :class:`RecommendProgress` (the ROS action's feedback).
         cancelled: polled before each orientation; true → :class:`RecommendCancelled` is raised.
+        occluder: the part (an artifact in the scan frame, e.g. its CAD mesh): a point it shadows from the laser
+            or hides from the camera under an orientation is not covered there (:func:`coverage_mask`).
 
     Raises:
         ValueError: empty region, or no orientation keeps the required coverage (or every candidate is outside
@@ -314,7 +326,7 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
         inside = np.asarray(dom_fn(X[:, cov].reshape(-1, X.shape[-1])), dtype=bool).reshape(len(X), -1)
         return 1.0 - inside.mean(axis=1)
 
-    cov_before = coverage_mask(sub, grazing_incidence_deg, grazing_view_deg)
+    cov_before = coverage_mask(sub, grazing_incidence_deg, grazing_view_deg, occluder)
     Xb = np.asarray(before_features[rows], dtype=np.float32)[None]
     if batch_du is not None:
         d_b, u_b = batch_du(Xb)
@@ -350,7 +362,7 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
         n_eval += 1
         pose_o = pose.rotated(r, pivot=centroid)
         ctx_o = sub.with_pose(pose_o, scanner)
-        cov = coverage_mask(ctx_o, grazing_incidence_deg, grazing_view_deg)
+        cov = coverage_mask(ctx_o, grazing_incidence_deg, grazing_view_deg, occluder)
         if cov.mean() < need or not cov.any():
             continue
         n_kept += 1

@@ -244,6 +244,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--param", action="append", metavar="NAME=VALUE", help="node parameter override (repeatable)")
     p.add_argument("--deterministic", action="store_true",
                    help="processing_latency written as 0 and CDR padding zeroed: identical bytes run after run")
+    p.add_argument("--cad", default=None, metavar="PART.stl",
+                   help="deviation map of each scan against this CAD mesh (STL/PLY/OBJ, mm), before and after "
+                        "compensation (needs open3d; xmetro_ros.apps.predict_cad)")
+    p.add_argument("--cad-pose", default=None, metavar="12 NUMBERS", help="CAD pose part → scan frame (3 rows of 4, "
+                                                                         "mm; default identity)")
+    p.add_argument("--cad-register", action="store_true", help="register the CAD on each compensated scan (ICP)")
+    p.add_argument("--cad-report", default=None, metavar="OUT.json", help="CAD report (default OUT.cad.json)")
     p.set_defaults(func=run)
 
 
@@ -258,4 +265,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"xmetro predict: error: {e}", file=sys.stderr)
         return 1
     print(res.summary())
+    if getattr(args, "cad", None):
+        from .predict_cad import cad_reports, parse_pose, summary_lines
+
+        try:
+            rows = cad_reports(res.outputs, args.cad, pose=parse_pose(args.cad_pose), register=args.cad_register,
+                               report=args.cad_report or str(Path(args.out).with_suffix(".cad.json")))
+        except (ValueError, OSError) as e:
+            print(f"xmetro predict: --cad: error: {e}", file=sys.stderr)
+            return 1
+        print("\n".join(summary_lines(rows)))
     return 0

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..artifacts import Artifact, ArtifactSpecError, Cylinder, Plane, Sphere
 from ..geometry import HeadPose
+from ..mesh import MeshArtifact
 from ..scan import Scan
 from ..scanner import ScannerModel, ScanSettings, SettingsError
 from .effect import SimContext
@@ -68,6 +69,9 @@ def _bounds_corners(artifact: Artifact, extent_mm: float) -> np.ndarray:
         t1 /= np.linalg.norm(t1)
         t2 = np.cross(n, t1)
         axes = np.stack([t1 * extent_mm / 2, t2 * extent_mm / 2, np.zeros(3)])
+    elif isinstance(artifact, MeshArtifact):
+        lo, hi = artifact.bounds()
+        c, axes = 0.5 * (lo + hi), np.diag(0.5 * (hi - lo))
     else:
         raise ArtifactSpecError(
             f"unknown artifact type {type(artifact).__name__!r} (the simulator scans Sphere, Cylinder, Plane)"
@@ -147,9 +151,10 @@ def error_noise_std(artifact: Artifact, points: np.ndarray, cov: np.ndarray, ste
 
 
 def _check_inputs(artifact: Any, settings: Any, scanner: ScannerModel) -> None:
-    if not isinstance(artifact, (Sphere, Cylinder, Plane)):
+    if not isinstance(artifact, (Sphere, Cylinder, Plane, MeshArtifact)):
         raise ArtifactSpecError(
-            f"unknown artifact type {type(artifact).__name__!r} (the simulator scans Sphere, Cylinder, Plane)"
+            f"unknown artifact type {type(artifact).__name__!r} (the simulator scans Sphere, Cylinder, Plane, "
+            "MeshArtifact)"
         )
     if not isinstance(settings, ScanSettings):
         raise SettingsError(f"settings must be a ScanSettings, got {type(settings).__name__}")
@@ -173,7 +178,7 @@ def simulate_scan(
     """Simulate one organized scan of ``artifact``.
 
     Args:
-        artifact: Sphere, Cylinder or Plane in the scan frame (mm).
+        artifact: Sphere, Cylinder, Plane or MeshArtifact (any part, xmetro_ros.mesh) in the scan frame (mm).
         settings: lateral density (/mm), direction density (/mm), exposure (ms); validated against the scanner.
         scanner: scanner model; None → ``ScannerModel.load()``.
         pose: head pose at scan start; None → looking down from the scanner's stand-off, covering the artifact.

@@ -1,0 +1,68 @@
+"""Judging a mesh part against its CAD (issue 18): the compensation lowers the deviation error, the intervals hold
+where the judge calls the points in domain, `xmetro predict --cad` reports the same maps offline."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("open3d")
+
+from xmetro_ros.inference import ModelSet
+from xmetro_ros.parts import make_part
+from xmetro_ros.parts_study import PRESENTATION, evaluate_part
+from xmetro_ros.scan_handler import ScanHandler
+from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.sim import simulate_scan
+
+
+@pytest.fixture(scope="module")
+def handler() -> ScanHandler:
+    return ScanHandler(ModelSet.load(), ScannerModel.load())
+
+
+@pytest.mark.parametrize("part", ["blade", "bowl", "step", "fillet"])
+def test_compensation_lowers_the_deviation_error_against_cad(handler: ScanHandler, part: str) -> None:
+    """Each part (never trained on), the study's low densities at the default exposure, pose known: MAE and p95 of
+    |measured − CAD − true form error| drop with the model's compensation (measured factors 1.29-1.84 and
+    1.24-1.62); the intervals cover ≥ 90 % of the in-domain points, overall and per region type (types with ≥ 100
+    in-domain points). docs/parts.md has the settings where this does not hold (bowl at 0.1 ms)."""
+    r = evaluate_part(part, handler, ScanSettings(6.0, 3.0, 0.5), seed=7, register=False)
+    kp = r["cad"]["known_pose"]
+    assert kp["after"]["mae_um"] < kp["before"]["mae_um"] / 1.2
+    assert kp["after"]["p95_um"] < kp["before"]["p95_um"] / 1.15
+    cov = r["coverage"]
+    assert cov["in_domain"]["n"] > 5000 and cov["in_domain"]["coverage"] >= 0.90
+    for name, g in cov["regions"].items():
+        if g["in_domain"]["n"] >= 100:
+            assert g["in_domain"]["coverage"] >= 0.90, (name, g)
+    assert r["mae_ratio_to_oracle"][2] < 1.1  # Z, the largest error, near the floor
+
+
+def test_predict_cad_offline(tmp_path, handler: ScanHandler) -> None:
+    """`xmetro predict BAG --out OUT --cad PART.stl --cad-pose ...`: the report's maps are those of cad_deviation on
+    the same judged scan (through the node's core and its ~/deviations cloud, float32 metres)."""
+    from xmetro_ros.apps.cli import main
+    from xmetro_ros.cad_judge import cad_deviation
+    from xmetro_ros.mesh import write_stl
+    from xmetro_ros.ros.scan_io import write_scans
+
+    cad = make_part("step")
+    stl = write_stl(tmp_path / "step.stl", cad.vertices, cad.triangles)
+    scan = simulate_scan(make_part("step", form_um=40.0).transformed(PRESENTATION), ScanSettings(4.0, 2.0, 0.5),
+                         seed=2)
+    bag = write_scans(tmp_path / "in.mcap", [scan])
+    pose = " ".join(f"{x:.12g}" for x in PRESENTATION[:3].ravel())
+    rc = main(["predict", str(bag), "--out", str(tmp_path / "out.mcap"), "--cad", str(stl), "--cad-pose", pose])
+    assert rc == 0
+    rep = json.loads((tmp_path / "out.cad.json").read_text())
+    row = rep["scans"][0]
+    res = handler.process(scan)
+    pts = np.asarray(res.scan.points).reshape(-1, 3)
+    direct = cad_deviation(cad, pts, res.deviations, res.uncertainty, pose=PRESENTATION).summary()
+    assert row["points"] == direct["points"] > 1000
+    for k in ("before", "after", "u_normal"):
+        assert row[k]["mean_abs"] == pytest.approx(direct[k]["mean_abs"], rel=1e-3, abs=0.01)
+    assert np.isfinite(row["u_normal"]["mean"]) and row["u_normal"]["mean"] > 0

@@ -1,0 +1,71 @@
+"""`xmetro predict BAG --out OUT.mcap --cad PART.stl`: each judged scan's deviation map against the part's CAD,
+before and after the model's compensation, with U along the normal (``xmetro_ros.cad_judge``).
+
+The node's ``~/deviations`` cloud of each scan (x, y, z as received, predicted error dx, dy, dz, U ux, uy, uz,
+flags; metres) is read back, converted to mm and compared with the CAD placed by ``--cad-pose`` (part → scan
+frame: 12 numbers, the first three rows of a 4×4 matrix, mm; default identity) or registered on the compensated
+scan (``--cad-register``: point-to-plane ICP from that pose, its fit and uncertainty reported). Needs open3d
+(``[train]`` extra) for the mesh queries. Writes ``--cad-report`` (JSON; default OUT.cad.json).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["cad_reports", "parse_pose", "summary_lines"]
+
+
+def parse_pose(text: str | None) -> np.ndarray:
+    """A 4×4 pose from 12 comma- or space-separated numbers (rows 1-3, mm); None/empty → identity."""
+    if not text:
+        return np.eye(4)
+    vals = [float(x) for x in text.replace(",", " ").split()]
+    if len(vals) != 12:
+        raise ValueError(f"--cad-pose needs 12 numbers (3 rows of 4), got {len(vals)}")
+    t = np.eye(4)
+    t[:3, :] = np.reshape(vals, (3, 4))
+    return t
+
+
+def cad_reports(outputs: list[Any], cad_path: str | Path, *, pose: np.ndarray | None = None,
+                register: bool = False, report: str | Path | None = None) -> list[dict[str, Any]]:
+    """The CAD deviation summary of each output set with a ``~/deviations`` cloud (``OutputSet`` of
+    ``predict_bag``); written to ``report`` (JSON) when given."""
+    from ..cad_judge import cad_deviation
+    from ..mesh import MeshArtifact
+    from ..ros.cloud import read_points_numpy
+
+    cad = MeshArtifact.from_file(cad_path)
+    rows: list[dict[str, Any]] = []
+    for k, o in enumerate(outputs):
+        if o.deviations is None:
+            rows.append({"scan": k, "error": "no deviations (scan in ERROR or not kept)"})
+            continue
+        a = read_points_numpy(o.deviations, ["x", "y", "z", "dx", "dy", "dz", "ux", "uy", "uz"]).astype(np.float64)
+        flags = np.asarray(read_points_numpy(o.deviations, ["flags"])).reshape(-1)
+        a *= 1e3  # m → mm
+        dev = cad_deviation(cad, a[:, :3], a[:, 3:6], a[:, 6:9], flags=flags, pose=pose, register=register)
+        rows.append({"scan": k, "stamp_ns": int(o.stamp_ns), **dev.summary()})
+    if report is not None:
+        Path(report).write_text(json.dumps({"cad": str(cad_path), "scans": rows}, indent=1))
+    return rows
+
+
+def summary_lines(rows: list[dict[str, Any]]) -> list[str]:
+    """One line per scan: mean / p95 |measured − CAD| before → after compensation, mean U along the normal."""
+    out = []
+    for r in rows:
+        if "error" in r:
+            out.append(f"cad #{r['scan']}: {r['error']}")
+            continue
+        b, a, u = r["before"], r["after"], r["u_normal"]
+        reg = r.get("registration")
+        out.append(f"cad #{r['scan']}: {r['points']} points, |measured − CAD| mean {b['mean_abs']:.2f} → "
+                   f"{a['mean_abs']:.2f} µm, p95 {b['p95_abs']:.2f} → {a['p95_abs']:.2f} µm (compensated), mean U "
+                   f"along the normal {u['mean']:.2f} µm"
+                   + (f"; registered: RMSE {reg['rmse_mm'] * 1e3:.2f} µm, fitness {reg['fitness']:.3f}" if reg else ""))
+    return out
