@@ -31,6 +31,12 @@ def test_wheel_carries_interfaces_libraries_config_and_model(tmp_path: Path):
                   "xmetro_ros/bag/codec.py", "xmetro_ros/sim/scanner_sim.py", "xmetro_ros/learn/train.py",
                   "xmetro_ros/loop/run.py"):
         assert layer in names, layer
+    # every module of the source tree (generated interfaces aside) is in the wheel: a subpackage missing from
+    # pyproject's list would install a package that fails on import
+    missing = sorted(str(p.relative_to(ROOT)) for p in (ROOT / "xmetro_ros").rglob("*.py")
+                     if p.relative_to(ROOT / "xmetro_ros").parts[0] not in ("msg", "srv", "action")
+                     and str(p.relative_to(ROOT)) not in names)
+    assert missing == [], missing
     data = next((n.split("/")[0] for n in names if n.endswith(".data/data/lib/libxmetro_ros__rosidl_generator_py.so")),
                 None)
     assert data, "the wheel has no lib/ data files: the interface libraries would be missing after install"
