@@ -67,3 +67,29 @@ def test_rotated_campaign_scans_cover_the_artifact(artifact):
         assert len(nom) > 0.85 * len(ref), it.pose_index
         assert np.min(np.linalg.norm(nom - pivot, axis=1)) < 0.5
         assert np.all(np.ptp(nom[:, :2], axis=0) > 0.85 * ref_ext), it.pose_index
+
+
+def test_default_profile_campaign_balances_poses_against_settings():
+    """The default model's profile (issue 15): the full campaign from the search's poses, cycled in an order that
+    never ties a pose axis to a setting (the grid's own order never puts lateral 15/mm at a -90 deg turn)."""
+    from xmetro_ros.learn.families import PROFILES, balanced_pose_order
+
+    full, dflt = PROFILES["full"], PROFILES["default"]
+    assert "poses" not in full.campaign and dflt.campaign["pose_mode"] == "cycle"
+    order = [np.asarray(r) for r in balanced_pose_order()]
+    g = pose_grid()
+    perm = [min(range(27), key=lambda j, r=r: float(np.abs(g[j] - r).max())) for r in order]
+    assert sorted(perm) == list(range(27))  # the same 27 poses, reordered
+    items = study_campaign(SC, seed=0, poses=order)
+    assert len(items) == 108
+
+    def digits(k: int) -> tuple[int, int, int]:  # (lateral, direction, exposure) / (turn, tilt X, tilt Y) levels
+        return k // 9, (k // 3) % 3, k % 3
+
+    for s in range(3):
+        for p in range(3):
+            counts = [[0] * 3 for _ in range(3)]
+            for it in items:
+                assert it.pose_index is not None
+                counts[digits(it.config_index)[s]][digits(perm[it.pose_index])[p]] += 1
+            assert min(min(row) for row in counts) >= 10, (s, p, counts)

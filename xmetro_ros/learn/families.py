@@ -6,6 +6,7 @@ epsilon and the MLP's initialisation see O(1) numbers; the exported ONNX graphs 
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -16,6 +17,8 @@ from sklearn.pipeline import make_pipeline
 from sklearn.preprocessing import StandardScaler
 from sklearn.svm import SVR
 from sklearn.tree import DecisionTreeRegressor
+
+from ..sim.campaign import pose_grid
 
 __all__ = [
     "FAMILIES",
@@ -97,6 +100,29 @@ PROFILES: dict[str, Profile] = {
         shap_points=500, shap_background=10,
     ),
 }
+
+
+def balanced_pose_order() -> list[list[list[float]]]:
+    """``pose_grid()`` reordered for ``pose_mode="cycle"`` over the 27 study configurations: configuration k
+    (digits lateral, direction, exposure in base 3) gets grid pose ``9 tz + 3 tx + ty`` with (tz, tx, ty) =
+    M (l, d, e) mod 3, M = [[1, 0, 1], [1, 0, 2], [1, 1, 2]] (invertible over GF(3)). In the grid's own order the
+    cycle ties the turn to the lateral density and the X tilt to the direction density (e.g. lateral 15/mm never
+    at a -90 deg turn); in this order, over the 4 artifacts' shifted cycles, every (setting, pose axis) pair of
+    levels occurs 10-14 times (12 = balanced). Lists, not arrays: the campaign arguments stay JSON."""
+    grid = pose_grid()
+    m = np.array([[1, 0, 1], [1, 0, 2], [1, 1, 2]])
+    order = []
+    for k in range(len(grid)):
+        tz, tx, ty = m @ np.array([k // 9, (k // 3) % 3, k % 3]) % 3
+        order.append(int(9 * tz + 3 * tx + ty))
+    return [grid[i].tolist() for i in order]
+
+
+# The shipped default model's campaign ("train where you search", issue 15): the full profile's, each scan from one
+# of the rescan recommender's head orientations (cycled, in balanced_pose_order: still 108 scans).
+PROFILES["default"] = dataclasses.replace(
+    PROFILES["full"], name="default",
+    campaign={**PROFILES["full"].campaign, "poses": balanced_pose_order(), "pose_mode": "cycle"})
 
 
 def get_profile(name: str | Profile) -> Profile:
