@@ -197,7 +197,12 @@ def test_colcon_install_finds_config_and_model_and_starts_renamed_node(tmp_path:
             client = sp.node.create_client(GetParameters, "/cell3/cell3_judge/get_parameters")
             res = call_service(client, GetParameters.Request(names=list(expected)), timeout=60)
         values = dict(zip(expected, (parameter_value_to_python(v) for v in res.values), strict=True))
-        assert values == pytest.approx(expected), "the renamed node did not take the params file's values"
+        # arrays compared element by element (pytest.approx takes no nested containers)
+        flat = {f"{k}[{i}]" if isinstance(v, list) else k: x
+                for k, v in expected.items() for i, x in (enumerate(v) if isinstance(v, list) else [(0, v)])}
+        got = {f"{k}[{i}]" if isinstance(expected[k], list) else k: x
+               for k, v in values.items() for i, x in (enumerate(v) if isinstance(expected[k], list) else [(0, v)])}
+        assert got == pytest.approx(flat), "the renamed node did not take the params file's values"
     finally:
         proc.send_signal(2)
         try:
