@@ -94,7 +94,8 @@ def main(argv: list[str] | None = None) -> int:
 
     S = 1_000_000_000
     domain = fresh_domain_id()
-    params = {"max_points": 400_000, "max_processing_time": 5.0}
+    # reliable: the soak counts an answer for every scan it sends (a best-effort subscription may lose a 20 MB cloud)
+    params = {"max_points": 400_000, "max_processing_time": 5.0, "reliability": "reliable"}
     if args.model:
         params["model_dir"] = args.model
     proc = NodeProcess(params_file=str(ROOT / "config" / "xmetro.yaml"), params=params, domain_id=domain)

@@ -6,6 +6,8 @@ import json
 import re
 from pathlib import Path
 
+import numpy as np
+
 from xmetro_ros.apps.demo import run_demo
 from xmetro_ros.ros.node_outputs import Tolerance, compare_outputs, read_outputs
 
@@ -31,6 +33,18 @@ def test_demo_end_to_end(tmp_path):
     assert len(ex["feature_names"]) == len(ex["mean_abs_shap_um"]) and ex["n_points"] > 0
     assert ex["axis_names"] == ["x", "y", "z"]
     assert res.recommend["rows"][1][0] == "recommended settings" and res.recommend["alternatives"]
+    # the recommendation followed in the virtual scanner: re-simulated actual p95 before and after; the "before"
+    # re-simulation reproduces the judged scan's own actual error in the region (other noise seeds)
+    assert res.resim is not None and res.resim["before_um"] > 0 and res.resim["after_um"] > 0
+    from xmetro_ros.ros.scan_io import read_scans
+
+    src = next(s for s in read_scans(ROOT / "bags" / "demo.mcap") if s.stamp_ns == res.worst["stamp_ns"])
+    pts = src.points.reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    nominal = src.artifact.project(pts)
+    inside = np.linalg.norm(nominal - res.worst["center_m"] * 1e3, axis=1) <= 4.0
+    own = float(np.percentile(np.linalg.norm(nominal[inside] - pts[inside], axis=1), 95)) * 1e3
+    assert inside.sum() > 50 and abs(res.resim["before_um"] / own - 1) < 0.3, (res.resim, own)
     html = res.report.read_text()
     assert res.report == tmp_path / "demo" / "report.html"
     # quality table (4 scans), 4 deviation maps + the SHAP chart, embedded as base64 PNG
@@ -39,6 +53,7 @@ def test_demo_end_to_end(tmp_path):
     for section in ("Per-scan quality", "Deviation maps", "~/explain", "~/recommend_settings"):
         assert section in html
     assert "~/explain failed" not in html and "~/recommend_settings failed" not in html
+    assert "re-simulated actual p95" in html
     # the recording holds inputs and outputs
     assert (tmp_path / "demo" / "outputs.mcap").stat().st_size > 0
     assert "xmetro_node ready" in (tmp_path / "demo" / "node.log").read_text()
