@@ -117,7 +117,10 @@ def run_export_default(args: argparse.Namespace) -> int:
 
             table, manifest = load_data(args.profile, args.seed)
             run_study(table, manifest, args.profile, args.seed, tmp, families=(DEFAULT_FAMILY,),
-                      card_extra={"scanner": _scanner_card()})
+                      card_extra={"scanner": _scanner_card(),
+                                  "trained_by": f"xmetro export-default --profile {args.profile} --seed {args.seed}"
+                                  + ("" if args.no_calibrate else " (calibrated on the campaign simulated with "
+                                     f"seed {args.seed + CALIBRATION_SEED_OFFSET})")})
             src = Path(tmp) / "models" / DEFAULT_FAMILY
         staged = Path(tmp) / "staged"
         shutil.copytree(src, staged)  # calibration writes the card: never into the --from directory
