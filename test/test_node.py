@@ -49,7 +49,7 @@ def rig():
     cli_sp = NodeSpinner(lambda ctx: __import__("rclpy.node", fromlist=["Node"]).Node("xmetro_tester", context=ctx))
     client = NodeClient(cli_sp.node)
     try:
-        client.wait_matched()
+        client.wait_matched(node_sp.node)
         yield node_sp.node, client, cli_sp.node
     finally:
         cli_sp.close()

@@ -54,7 +54,7 @@ def _rig(model_dir: Path):
         Parameter("model_dir", value=str(model_dir))]))
     cli_sp = NodeSpinner(lambda ctx: Node("xmetro_tester", context=ctx))
     client = NodeClient(cli_sp.node)
-    client.wait_matched()
+    client.wait_matched(node_sp.node)
     return node_sp, cli_sp, client
 
 
@@ -68,7 +68,9 @@ def test_unusable_model_node_runs_degraded(tmp_path, kind, reason):
         mark = client.diag_mark()
         scan = sim_scan(10 * S)
         client.pub_settings.publish(settings_msg(scan, 9 * S))
-        q, _, _ = client.send(cloud_of(scan))
+        # best-effort scan subscription (the default): a scan published while discovery is still settling may be
+        # lost, so it is sent again until answered (a degraded node answers at once)
+        q, _, _ = client.send(cloud_of(scan), resend_every=3.0)
         assert q.verdict == ScanQuality.VERDICT_ERROR and q.error_code == ScanQuality.ERROR_MODEL_UNAVAILABLE
         assert reason in q.message and q.model_id == ""
         d = client.wait_diag_level(ERROR, mark)
@@ -90,9 +92,9 @@ def test_model_needing_a_missing_field(tmp_path):
         scan.fields["reflectance"] = scan.fields["intensity"].copy()
         client.pub_settings.publish(settings_msg(scan, 9 * S))
         assert wait_for(lambda: node_sp.node.core.settings_count >= 1, TIMEOUT)
-        q, _, _ = client.send(scan_to_cloud(scan, fields=["intensity"]), outputs=False)
+        q, _, _ = client.send(scan_to_cloud(scan, fields=["intensity"]), outputs=False, resend_every=5.0)
         assert q.error_code == ScanQuality.ERROR_MISSING_INPUT_FIELD and "reflectance" in q.message
-        q, dev, _ = client.send(scan_to_cloud(scan, header_stamp=11 * S))
+        q, dev, _ = client.send(scan_to_cloud(scan, header_stamp=11 * S), resend_every=5.0)
         assert q.error_code == ScanQuality.ERROR_NONE and dev is not None, q.message
     finally:
         cli_sp.close()

@@ -141,10 +141,20 @@ class NodeClient:
         with self.lock:
             self.diagnostics.append((len(self.diagnostics), msg))
 
-    def wait_matched(self) -> None:
+    def wait_matched(self, target: Any = None) -> None:
+        """Wait until this client's endpoints and xmetro_node's are matched. DDS matches each side on its own:
+        with ``target`` (the node object, for a node in this process) also wait for the node's side — its scan
+        reader matched with our writer (a best-effort reader drops samples from a writer it has not matched yet, and
+        nothing resends them) and its output writers with our readers (volatile: nothing written before is
+        delivered)."""
         assert wait_for(lambda: self.pub_scan.get_subscription_count() > 0
                         and self.pub_settings.get_subscription_count() > 0
                         and all(s.get_publisher_count() > 0 for s in self.subs), TIMEOUT), "xmetro_node not matched"
+        if target is not None:
+            assert wait_for(lambda: target.sub_scan.get_publisher_count() > 0
+                            and all(p.get_subscription_count() > 0
+                                    for p in (target.pub_quality, target.pub_dev, target.pub_corr)),
+                            TIMEOUT), "xmetro_node's own endpoints not matched"
 
     def _find(self, lst: str, stamp: int) -> Any:
         with self.lock:

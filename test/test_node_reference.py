@@ -51,7 +51,7 @@ def rig():
                              durability=DurabilityPolicy.VOLATILE))
     reset = cli_sp.node.create_client(Trigger, "/xmetro_node/reset_reference")
     try:
-        client.wait_matched()
+        client.wait_matched(node_sp.node)
         assert wait_for(lambda: pub_ref.get_subscription_count() > 0 and inbox.sub.get_publisher_count() > 0,
                         TIMEOUT)
         # one settings message for every scan of the test (stamped before all of them, transient-local)

@@ -54,7 +54,7 @@ def rig():
     cli_sp = NodeSpinner(lambda ctx: Node("xmetro_robustness_tester", context=ctx))
     client = NodeClient(cli_sp.node, target=NAME)
     try:
-        client.wait_matched()
+        client.wait_matched(node_sp.node)
         yield node_sp.node, client
         assert client.assert_all_outputs_accounted() > 0
     finally:

@@ -39,7 +39,7 @@ def rig():
     cli_sp = NodeSpinner(lambda ctx: __import__("rclpy.node", fromlist=["Node"]).Node("xmetro_u_tester", context=ctx))
     client = NodeClient(cli_sp.node)
     try:
-        client.wait_matched()
+        client.wait_matched(node_sp.node)
         yield node_sp.node, client, cli_sp.node
     finally:
         cli_sp.close()
@@ -291,7 +291,7 @@ def test_guard_banded_classes_all_occur_through_a_node_with_a_sharp_model(tmp_pa
     cli_sp = NodeSpinner(lambda ctx: Node("xmetro_sharp_tester", namespace="/sharp", context=ctx))
     try:
         node, client = node_sp.node, NodeClient(cli_sp.node, target="sharp/xmetro_node")
-        client.wait_matched()
+        client.wait_matched(node_sp.node)
         _q0, _d0, _c0, a0 = _judge(node, client, scan, 160 * S)
         tol = float(np.nanmedian(a0["dnorm"].astype(np.float64)))
         assert all(r.successful for r in node.set_parameters([Parameter("tolerance", value=tol)]))

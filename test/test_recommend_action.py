@@ -30,7 +30,7 @@ def rig():
     cli_sp = NodeSpinner(lambda ctx: Node("xmetro_action_tester", context=ctx))
     client = NodeClient(cli_sp.node)
     try:
-        client.wait_matched()
+        client.wait_matched(node_sp.node)
         base = sim_scan(10 * S)
         client.pub_settings.publish(settings_msg(base, 5 * S))
         assert wait_for(lambda: node_sp.node.core.settings_count >= 1, TIMEOUT)
