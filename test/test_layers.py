@@ -135,41 +135,38 @@ def test_importing_the_whole_core_loads_no_ros():
     assert _run(code) == "[]"
 
 
-@pytest.mark.parametrize("bag", ["demo.mcap"])
-def test_offline_predict_creates_no_dds_participant(tmp_path, bag):
-    """``xmetro predict`` never starts DDS: rclpy.init is made to fail, rclpy.node / the replay tool stay unloaded."""
+def _run_offline(*commands: list[str]) -> str:
+    """Run ``xmetro`` sub-commands in a fresh interpreter with ``rclpy.init`` made to fail (each must exit 0); the
+    last line printed lists the DDS-side modules they loaded (``[]``: none)."""
     code = (
         "import sys, rclpy\n"
         "def _no(*a, **k): raise AssertionError('rclpy.init called by an offline tool')\n"
         "rclpy.init = _no\n"
         "from xmetro_ros.apps.cli import main\n"
-        f"rc = main(['predict', {str(ROOT / 'bags' / bag)!r}, '--out', {str(tmp_path / 'out.mcap')!r}])\n"
-        "assert rc == 0, rc\n"
+        f"for argv in {[list(c) for c in commands]!r}:\n"
+        "    rc = main(argv)\n"
+        "    assert rc == 0, (argv[0], rc)\n"
         "print(sorted(k for k in ('rclpy.node', 'rclpy.executors', 'xmetro_ros.apps.replay', 'xmetro_ros.ros.node')\n"
         "             if k in sys.modules))\n"
     )
-    assert _run(code) == "[]"
+    return _run(code)
+
+
+@pytest.mark.parametrize("bag", ["demo.mcap"])
+def test_offline_predict_creates_no_dds_participant(tmp_path, bag):
+    """``xmetro predict`` never starts DDS: rclpy.init is made to fail, rclpy.node / the replay tool stay unloaded."""
+    assert _run_offline(["predict", str(ROOT / "bags" / bag), "--out", str(tmp_path / "out.mcap")]) == "[]"
     assert (tmp_path / "out.mcap").stat().st_size > 0
 
 
 def test_offline_simulate_and_loop_create_no_dds_participant(tmp_path):
     """``xmetro simulate`` and ``xmetro loop`` (reading the bag it wrote) never start DDS either."""
     sim, loop = tmp_path / "sim", tmp_path / "loop"
-    code = (
-        "import sys, rclpy\n"
-        "def _no(*a, **k): raise AssertionError('rclpy.init called by an offline tool')\n"
-        "rclpy.init = _no\n"
-        "from xmetro_ros.apps.cli import main\n"
-        f"rc = main(['simulate', '--quick', '--artifact', 'sphere:radius=12.5', '--artifact', 'sphere:radius=12.5',\n"
-        f"           '--out', {str(sim)!r}])\n"
-        "assert rc in (0, None), rc\n"
-        f"rc = main(['loop', {str(sim / 'campaign.mcap')!r}, '--artifact', 'sphere:radius=12.5', '--max-iter', '1',\n"
-        f"           '--n-perm', '20', '--iterations', '50', '--out', {str(loop)!r}])\n"
-        "assert rc in (0, None), rc\n"
-        "print(sorted(k for k in ('rclpy.node', 'rclpy.executors', 'xmetro_ros.apps.replay', 'xmetro_ros.ros.node')\n"
-        "             if k in sys.modules))\n"
-    )
-    assert _run(code) == "[]"
+    assert _run_offline(
+        ["simulate", "--quick", "--artifact", "sphere:radius=12.5", "--artifact", "sphere:radius=12.5",
+         "--out", str(sim)],
+        ["loop", str(sim / "campaign.mcap"), "--artifact", "sphere:radius=12.5", "--max-iter", "1", "--n-perm", "20",
+         "--iterations", "50", "--out", str(loop)]) == "[]"
     assert (loop / "report.json").stat().st_size > 0
 
 

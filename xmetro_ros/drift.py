@@ -97,36 +97,32 @@ def scan_statistics(actual: np.ndarray, predicted: np.ndarray, U: np.ndarray | N
         raise ValueError(f"actual {a.shape} and predicted {p.shape} differ in shape")
     r = a - p
     u = None if U is None else np.asarray(U, dtype=float)
-    # Coverage is judged where the interval is defined: per axis when U is per axis (N, 3) — the conformal
-    # guarantee is per axis, and a per-axis half-width has no signed projection onto the normal.
-    r_cov, u_cov = r, u
     if r.ndim == 2 and normals is not None:
         n = np.asarray(normals, dtype=float)
         if n.shape != r.shape:
             raise ValueError(f"normals {n.shape} must match the residual {r.shape}")
-        r = np.einsum("ij,ij->i", r, n)
-        if u is not None and u.ndim == 1:
-            r_cov = r  # one half-width per point: along the normal
-    r = r.reshape(-1)
-    row_ok = np.isfinite(r)
-    if u_cov is not None:
-        rc = np.asarray(r_cov).reshape(-1)
-        uc = np.broadcast_to(u_cov, np.shape(r_cov)).reshape(-1) if u_cov.ndim == np.ndim(r_cov) \
-            else u_cov.reshape(-1)
-        if uc.shape != rc.shape:
-            raise ValueError(f"U has {uc.size} values for {rc.size} residuals")
-        cov_ok = np.isfinite(rc) & np.isfinite(uc)
-        if rc.shape == r.shape:
-            row_ok &= cov_ok
-        else:  # per-axis coverage: a point counts for the residual statistics when all its U are finite
-            row_ok &= cov_ok.reshape(len(r), -1).all(axis=1)
-            cov_ok &= np.repeat(row_ok, rc.size // len(r))
-    if row_ok.sum() < 3:
+        res = np.einsum("ij,ij->i", r, n)
+        # Coverage is judged where the interval is defined: per axis when U is per axis (the conformal guarantee is
+        # per axis, and a per-axis half-width has no signed projection onto the normal), else along the normal.
+        cov = r if u is not None and u.ndim == 2 else res
+    else:
+        res = cov = r
+    # One row per point: a point counts when its residual, and its interval when U is given, are finite.
+    res2 = res.reshape(len(res), -1)
+    ok = np.isfinite(res2).all(axis=1)
+    if u is not None:
+        cov2 = cov.reshape(len(res2), -1)
+        try:
+            u2 = np.broadcast_to(u.reshape(len(res2), -1) if u.ndim else u, cov2.shape)
+        except ValueError as e:
+            raise ValueError(f"U has {u.size} values for {cov2.size} residuals") from e
+        ok &= np.isfinite(cov2).all(axis=1) & np.isfinite(u2).all(axis=1)
+    if ok.sum() < 3:
         raise ValueError("a reference scan needs at least 3 finite residuals")
-    rr = r[row_ok]
+    rr = res2[ok]
     out = {"residual_mean": float(rr.mean()), "residual_rms": float(np.log(max(np.sqrt((rr**2).mean()), 1e-12)))}
-    if u_cov is not None:
-        out["coverage"] = float(np.mean(np.abs(rc[cov_ok]) <= uc[cov_ok]))
+    if u is not None:
+        out["coverage"] = float(np.mean(np.abs(cov2[ok]) <= u2[ok]))
     return out
 
 

@@ -20,6 +20,7 @@ gives ``MISMATCH`` and is not fed to the monitor. Spurious returns that the outl
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -134,14 +135,16 @@ class ReferenceChecker:
         self.monitor.reset()
 
     def check(self, points_mm: np.ndarray, predicted_mm: np.ndarray, U_mm: np.ndarray | None,
-              candidates: dict[str, np.ndarray] | None = None) -> ReferenceResult:
+              candidates: dict[str, np.ndarray] | Callable[[], dict[str, np.ndarray]] | None = None
+              ) -> ReferenceResult:
         """Check one reference scan; the residual is taken along the certified sphere's normal.
 
         Args:
             points_mm: (M, 3) measured points (scan frame, mm) that the model judged.
             predicted_mm: (M, 3) predicted error nominal − measured per axis (NaN rows: no prediction).
             U_mm: (M, 3) expanded uncertainty per axis, or None (model without calibration).
-            candidates: {name: (M,)} variables for the screening on WARN.
+            candidates: {name: (M,)} variables for the screening on WARN, or a callable giving them (computed only
+                on WARN, e.g. ``lambda: live_candidates(prepared)``).
         """
         p = np.asarray(points_mm, dtype=np.float64)
         pred = np.asarray(predicted_mm, dtype=np.float64)
@@ -175,15 +178,17 @@ class ReferenceChecker:
         sig = 1.4826 * float(np.median(np.abs(r_n - med)))
         keep = np.abs(r_n - med) <= TRIM_SIGMA * max(sig, 1e-6)
         state = self.monitor.update(actual[keep], pred[ok][keep], None if u is None else u[keep], nrm[keep])
-        rk = r_n[keep]
+        # the reported residual statistics are the monitored ones (drift.scan_statistics)
+        st = state.stats
         res = ReferenceResult(state.state, self.monitor.n, int(keep.sum()),
                               actual_mean_abs_mm=float(np.mean(np.abs(a_n[keep]))),
-                              residual_mean_mm=float(np.mean(rk)), residual_rms_mm=float(np.sqrt(np.mean(rk**2))),
-                              coverage=float(state.stats.get("coverage", float("nan"))), drift=state,
+                              residual_mean_mm=st["residual_mean"], residual_rms_mm=float(np.exp(st["residual_rms"])),
+                              coverage=float(st.get("coverage", float("nan"))), drift=state,
                               trimmed=int((~keep).sum()))
-        if state.state == "WARN" and candidates:
+        if state.state == "WARN" and candidates is not None:
+            cands = candidates() if callable(candidates) else candidates
             idx = np.flatnonzero(ok)[keep]
-            res.screening = screen_candidates(rk, {k: np.asarray(v)[idx] for k, v in candidates.items()})
+            res.screening = screen_candidates(r_n[keep], {k: np.asarray(v)[idx] for k, v in cands.items()})
             named = [(abs(v["rho"]), k) for k, v in res.screening.items()
                      if v["p"] < CANDIDATE_ALPHA and abs(v["rho"]) >= CANDIDATE_MIN_RHO]
             if named:
@@ -196,15 +201,16 @@ class ReferenceChecker:
 
 
 def _message(res: ReferenceResult) -> str:
-    st = res.drift
-    base = st.message if st is not None else res.state.lower()
-    if res.state == "WARN":
-        cand = (f"; candidate effect: {res.candidate} (Spearman {res.candidate_rho:+.2f}, Holm p "
-                f"{res.candidate_p:.1e})" if res.candidate else "; no candidate variable stands out")
-        return (f"reference {base}: residual mean {res.residual_mean_mm * 1e3:+.1f} µm, RMS "
-                f"{res.residual_rms_mm * 1e3:.1f} µm{cand}")
+    base = res.drift.message if res.drift is not None else res.state.lower()
+    if res.state != "WARN":
+        tail = f" ({res.points} points, {res.trimmed} spurious left out)"
+    elif res.candidate:
+        tail = (f"; candidate effect: {res.candidate} (Spearman {res.candidate_rho:+.2f}, Holm p "
+                f"{res.candidate_p:.1e})")
+    else:
+        tail = "; no candidate variable stands out"
     return (f"reference {base}: residual mean {res.residual_mean_mm * 1e3:+.1f} µm, RMS "
-            f"{res.residual_rms_mm * 1e3:.1f} µm ({res.points} points, {res.trimmed} spurious left out)")
+            f"{res.residual_rms_mm * 1e3:.1f} µm{tail}")
 
 
 def live_candidates(prepared: Any) -> dict[str, np.ndarray]:

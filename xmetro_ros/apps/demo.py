@@ -191,14 +191,25 @@ def _recommend_dict(r: Any, region: str) -> dict[str, Any]:
 RESIM_SEEDS = 3
 
 
-def _resimulated(bag: Path, worst: dict[str, Any], recommend: dict[str, Any]) -> dict[str, float] | None:
+def _input_scans(bag: Path) -> dict[int, Any]:
+    """The bag's scans by stamp (ns), with their simulation metadata; {} for bags without xmetro metadata."""
+    try:
+        from ..ros.scan_io import read_scans
+
+        return {s.stamp_ns: s for s in read_scans(bag)}
+    except Exception:  # bags without xmetro metadata: no known artifact, no actual errors
+        return {}
+
+
+def _resimulated(inputs: dict[int, Any], worst: dict[str, Any], recommend: dict[str, Any]
+                 ) -> dict[str, float] | None:
     """Actual p95 |error| (µm) in the worst region before and after following the recommendation, re-simulated in
-    the virtual scanner from the judged scan's ground truth; None when the scan is not a simulated one."""
+    the virtual scanner from the judged scan's ground truth (``inputs``: the bag's scans by stamp); None when the
+    scan is not a simulated one."""
     from ..resim import GroundTruth, Region, resimulate
     from ..ros.convert import settings_from_msg
-    from ..ros.scan_io import read_scans
 
-    src = next((s for s in read_scans(bag) if s.stamp_ns == worst["stamp_ns"]), None)
+    src = inputs.get(worst["stamp_ns"])
     if src is None or src.artifact is None or "seed" not in src.meta:
         return None
     truth = GroundTruth.from_scan(src)
@@ -211,18 +222,12 @@ def _resimulated(bag: Path, worst: dict[str, Any], recommend: dict[str, Any]) ->
             "coverage_after": after.coverage, "seeds": RESIM_SEEDS}
 
 
-def _report_scans(bag: Path, outputs: list[Any]) -> list[Any]:
-    """Report rows: quality, processed points, predicted deviations, actual errors where the artifact is known."""
+def _report_scans(inputs: dict[int, Any], outputs: list[Any]) -> list[Any]:
+    """Report rows: quality, processed points, predicted deviations, actual errors where the artifact is known
+    (``inputs``: the bag's scans by stamp)."""
     from ..ros.node_outputs import deviation_arrays
     from .report_html import ReportScan
 
-    inputs: dict[int, Any] = {}
-    try:
-        from ..ros.scan_io import read_scans
-
-        inputs = {s.stamp_ns: s for s in read_scans(bag)}
-    except Exception:  # bags without xmetro metadata: no known artifact, no actual errors
-        inputs = {}
     rows = []
     for i, o in enumerate(outputs):
         src = inputs.get(o.stamp_ns)
@@ -270,6 +275,7 @@ def run_demo(
         raise FileNotFoundError(f"bag {bag} does not exist")
     record = out_dir / "outputs.mcap"
     record.unlink(missing_ok=True)
+    inputs: dict[int, Any] | None = None  # the bag's scans by stamp, read once when needed
     env_vars = apply_ros_env()  # this process (replay, service clients) and the node share the domain
     params: dict[str, Any] = {"scan_history": 10}
     if model_dir is not None:
@@ -296,7 +302,8 @@ def run_demo(
                 if "error" in v:
                     res.errors.append(f"{k} failed: {v['error']}")
             if "error" not in res.recommend:
-                res.resim = _resimulated(bag, res.worst, res.recommend)
+                inputs = _input_scans(bag)
+                res.resim = _resimulated(inputs, res.worst, res.recommend)
                 if res.resim is not None:
                     rs = res.resim
                     res.recommend["rows"].append(
@@ -311,7 +318,9 @@ def run_demo(
         node.stop()
         (out_dir / "node.log").write_text("\n".join(node.lines) + "\n")
     t = time.monotonic()
-    scans = _report_scans(bag, res.outputs) if res.outputs else []
+    if res.outputs and inputs is None:
+        inputs = _input_scans(bag)
+    scans = _report_scans(inputs or {}, res.outputs) if res.outputs else []
     res.labels = [s.label for s in scans]
     summary = _summary_lines(res)
     res.report = write_report(

@@ -253,7 +253,7 @@ class XmetroCore:
         else:
             try:
                 r = checker.check(res.prepared.points, res.predictions, res.row_uncertainty,
-                                  live_candidates(res.prepared))
+                                  lambda: live_candidates(res.prepared))
             except Exception as e:
                 r = ReferenceResult("MISMATCH", n_mon, 0, message=f"reference check failed: {type(e).__name__}: {e}")
         return reference_message(msg.header, self.model_id, r)

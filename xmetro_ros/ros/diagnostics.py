@@ -37,7 +37,7 @@ OK, WARN, ERROR = 0, 1, 2
 _VERDICT_LEVEL = {0: OK, 1: WARN, 2: WARN, 3: ERROR}
 # ReferenceCheck.STATE_* (kept as numbers: this module builds no xmetro_ros message)
 _REF_WARN, _REF_MISMATCH = 2, 3
-_REF_NAMES = {0: "WARMUP", 1: "OK", 2: "WARN", 3: "MISMATCH"}
+_REF_NAMES: dict[int | None, str] = {0: "WARMUP", 1: "OK", 2: "WARN", 3: "MISMATCH"}
 
 
 def status_name(node_name: str) -> str:
@@ -223,8 +223,7 @@ class DiagnosticsState:
                 if self.last_verdict is not None else "none",
                 "settings_defaulted": str(self.last_defaulted).lower(),
                 "worker_stalled": self.stalled or "no",
-                "reference_state": _REF_NAMES.get(self.reference_state, "none")
-                if self.reference_state is not None else "none",
+                "reference_state": _REF_NAMES.get(self.reference_state, "none"),
                 "reference_scans": self.reference_scans,
                 "reference_message": self.reference_message or "none",
             }

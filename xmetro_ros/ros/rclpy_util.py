@@ -10,7 +10,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import rclpy
 from rclpy.context import Context
@@ -18,7 +18,14 @@ from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 
 from .dds_env import apply_requested_ros_env, ros_env
 
-__all__ = ["NodeProcess", "NodeSpinner", "ServiceTimeoutError", "call_service", "new_context", "wait_for"]
+__all__ = ["NodeMixin", "NodeProcess", "NodeSpinner", "ServiceTimeoutError", "call_service", "new_context", "wait_for"]
+
+# Base of the mixins that make up xmetro_node's wiring (mixed into rclpy Node subclasses, plain and lifecycle):
+# type-checked as a Node, nothing at run time.
+if TYPE_CHECKING:
+    from rclpy.node import Node as NodeMixin
+else:
+    NodeMixin = object
 
 
 class ServiceTimeoutError(TimeoutError):

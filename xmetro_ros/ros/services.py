@@ -6,7 +6,7 @@ A mixin of the node's wiring (:class:`xmetro_ros.ros.node.XmetroWiring`).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from std_srvs.srv import Trigger
 
@@ -15,18 +15,12 @@ from ..srv import Explain, RecommendSettings
 from .convert import mm_to_m
 from .core import XmetroCore
 from .diagnostics import DiagnosticsState
+from .rclpy_util import NodeMixin
 
 __all__ = ["ServiceHandlers"]
 
-if TYPE_CHECKING:
-    from rclpy.node import Node
 
-    _NodeBase = Node
-else:
-    _NodeBase = object
-
-
-class ServiceHandlers(_NodeBase):
+class ServiceHandlers(NodeMixin):
     """Service and action callbacks of the node (see the module docstring)."""
 
     core: XmetroCore | None

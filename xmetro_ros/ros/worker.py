@@ -12,7 +12,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from sensor_msgs.msg import PointCloud2
 
@@ -20,19 +20,12 @@ from ..msg import ReferenceCheck, ScanQuality
 from .convert import stamp_to_ns
 from .core import XmetroCore
 from .diagnostics import DiagnosticsState
+from .rclpy_util import NodeMixin
 
 __all__ = ["ScanWorker"]
 
-# A mixin of rclpy Node subclasses (plain and lifecycle): type-check it as a Node.
-if TYPE_CHECKING:
-    from rclpy.node import Node
 
-    _NodeBase = Node
-else:
-    _NodeBase = object
-
-
-class ScanWorker(_NodeBase):
+class ScanWorker(NodeMixin):
     """Queue, worker thread, publication and watchdog of the node (see the module docstring)."""
 
     core: XmetroCore | None
@@ -160,9 +153,8 @@ class ScanWorker(_NodeBase):
             self.get_logger().error(ref.message)
         diag = self.diag
         if diag is not None:
-            before = diag.level()
             diag.on_reference(int(ref.state), ref.message, int(ref.reference_scans))
-            if diag.level() != before:
+            if diag.level() != diag.published_level:
                 self._publish_diag()
 
     def _answer(self, q: ScanQuality) -> None:
