@@ -99,6 +99,19 @@ def test_predict_truck_bag_defaults_settings(tmp_path):
     assert len(res.outputs) == 3 and res.inputs == ["cloud_1", "cloud_2", "cloud_3"]
     assert all(o.quality.settings_defaulted and int(o.quality.error_code) == 0 for o in res.outputs)
     assert any("no xmetro_ros/msg/ScannerSettings" in n for n in res.notes)
+    # An outdoor scene in metres lies far outside the model's domain (stand-off ~13 m): the spread head's σ̂ would
+    # overflow float32 there; U stays finite (σ̂ capped at the calibration's largest, widened by the domain distance)
+    # wherever a deviation is published, and those points carry OUT_OF_DOMAIN.
+    from xmetro_ros.flags import FLAG_OUT_OF_DOMAIN
+    from xmetro_ros.ros.node_outputs import cloud_arrays
+
+    for o in res.outputs:
+        a = cloud_arrays(o.deviations)
+        pub = np.isfinite(a["dx"])
+        assert pub.any()
+        for k in ("ux", "uy", "uz"):
+            assert np.isfinite(a[k][pub]).all() and (a[k][pub] > 0).all(), k
+        assert (a["flags"][pub] & FLAG_OUT_OF_DOMAIN).mean() > 0.9
     # The defaulted settings are those of the node's parameters (10 pt/mm, 4 profiles/mm, 0.5 ms).
     s = res.outputs[0].quality.settings
     assert (s.lateral_density, s.direction_density, s.exposure_time) == (10000.0, 4000.0, 0.0005)

@@ -16,7 +16,7 @@ from xmetro_ros.dataset import build_table
 from xmetro_ros.features import STUDY_FEATURES
 from xmetro_ros.geometry import HeadPose, quat_to_matrix
 from xmetro_ros.inference import ModelLoadError, ModelSet
-from xmetro_ros.learn.uncertainty import interval_metrics
+from xmetro_ros.learn.uncertainty import interval_metrics, predict_clouds
 from xmetro_ros.learn.uncertainty_eval import bins_for, markdown, run
 from xmetro_ros.scanner import ScannerModel
 from xmetro_ros.sim import simulate_scan
@@ -62,6 +62,24 @@ def test_card_records_the_calibration(trained):
     for ax in "xyz":  # finite-sample conformal quantile: at least the level, barely above it on ~20k points
         assert 0.95 <= u["achieved_coverage_calibration"][ax] < 0.952
     assert card["domain_mv"]["threshold"] > 0
+    # σ̂'s ceiling is the largest σ̂ on the calibration clouds (it caps nothing there: their maximum is reached)
+    cal = trained["cal"]
+    sig = predict_clouds(trained["ms"], cal.X, cal.cloud_id, with_u=False)["sigma"]
+    np.testing.assert_allclose(np.nanmax(sig, axis=0), u["sigma_max_mm"], rtol=1e-5)
+
+
+def test_sigma_is_capped_far_outside_the_data(trained):
+    """Far outside the data the spread head extrapolates exponentially (float32 exp overflows to inf on a scene in
+    metres read as millimetres); σ̂ stops at the calibration's largest and the domain distance alone widens U."""
+    ms, te = trained["ms"], trained["te"]
+    X = te.X[te.cloud_id == 0] * np.float32(50.0)
+    with np.errstate(over="raise", invalid="raise"):
+        r = ms.predict_with_uncertainty(X)
+    smax = np.asarray(ms.card["uncertainty"]["sigma_max_mm"])
+    assert r.out_of_domain.all() and np.all(r.sigma <= smax * (1 + 1e-5))
+    mult, floor = np.asarray(ms.card["uncertainty"]["multiplier"]), ms.card["uncertainty"]["sigma_floor_mm"]
+    assert np.all(np.isfinite(r.U))
+    np.testing.assert_allclose(r.U, mult * (r.sigma + floor) * r.domain_distance[:, None], rtol=1e-6)
 
 
 def test_coverage_sharpness_and_rank_on_new_seeds_and_artifacts(trained):

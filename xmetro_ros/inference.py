@@ -147,6 +147,12 @@ class ModelSet:
         self.set_chunk = _SET_CHUNK
         self._lock = threading.Lock()
         self._mv: tuple[np.ndarray, np.ndarray] | None = None
+        # σ̂ ceiling per axis: the largest σ̂ of the calibration clouds (card "uncertainty.sigma_max_mm"). Beyond the
+        # data the spread head extrapolates exponentially (σ̂ = exp(log σ̂) reaches float32 inf on a far-away scene);
+        # there the widening by the domain distance, not an extrapolated σ̂, is what U says. None: no ceiling.
+        smax = (card.get("uncertainty") or {}).get("sigma_max_mm")
+        self.log_sigma_max: np.ndarray | None = (
+            np.log(np.asarray(smax, np.float64)).astype(np.float32) if smax is not None else None)
 
     # ------------------------------------------------------------------ loading
     @classmethod
@@ -377,6 +383,8 @@ class ModelSet:
                 res = m.session.run(want, {"X": sets[i : i + self.set_chunk]})
                 for o, r in enumerate(res):
                     y[o, i : i + self.set_chunk][..., list(m.axes)] = r
+        if sigma and self.log_sigma_max is not None:
+            np.minimum(y[1], self.log_sigma_max, out=y[1])  # NaN stays NaN (np.minimum propagates it)
         return y
 
     def predict_with_sigma(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

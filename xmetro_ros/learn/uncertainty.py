@@ -128,6 +128,7 @@ def calibrate(model_dir: str | Path, X: np.ndarray, y: np.ndarray, cloud_id: np.
     if not 0 < confidence < 1:
         raise ValueError(f"confidence must be in (0, 1), got {confidence}")
     ms = ModelSet.load(model_dir)
+    ms.log_sigma_max = None  # a previous calibration's σ̂ ceiling must not shape this one
     y = np.asarray(y, np.float64)
     pred = predict_clouds(ms, X, cloud_id, with_u=False)
     mult, achieved, n = [], [], []
@@ -150,6 +151,8 @@ def calibrate(model_dir: str | Path, X: np.ndarray, y: np.ndarray, cloud_id: np.
         "multiplier": mult,
         "sigma_floor_mm": float(sigma_floor_mm),
         "U": "multiplier[axis] * (sigma_hat + sigma_floor_mm), times distance/threshold outside domain_mv",
+        # σ̂ is trusted up to the largest value the calibration saw; beyond it the domain distance widens U
+        "sigma_max_mm": [float(np.nanmax(pred["sigma"][:, a])) for a in range(3)],
         "sigma_source": {AXES[a]: ("log_sigma output" if any(m.sigma and a in m.axes for m in ms.members)
                                    else "constant 1 mm (absolute residuals)") for a in range(3)},
         "calibration_clouds": cloud_labels if cloud_labels is not None else ids,
