@@ -56,6 +56,7 @@ class JudgedScan:
     scanner_id: str
     model_id: str
     uncertainty: np.ndarray | None = None
+    cad_pose: np.ndarray | None = None  # (4, 4) mm, part → scan frame, of the CAD map of this scan (None: no CAD)
 
     def __post_init__(self) -> None:
         # Kept for every judged scan in the history: only what the services need, compactly.

@@ -86,7 +86,10 @@ def node_values(model_dir: str | Path | None = None, overrides: dict[str, Any] |
             raise PredictError(f"unknown node parameter {k!r}")
         d = specs[k].default
         try:
-            if isinstance(d, bool):
+            if isinstance(d, list):  # "[x, y, z]" or "x,y,z" or "x y z", as a params file would write it
+                v = [float(x) for x in v] if isinstance(v, (list, tuple)) else \
+                    [float(x) for x in str(v).strip("[] ").replace(",", " ").split()]
+            elif isinstance(d, bool):
                 v = v if isinstance(v, bool) else str(v).lower() in ("1", "true", "yes")
             elif isinstance(d, int):
                 v = int(v)
@@ -178,6 +181,8 @@ def predict_bag(
     core = XmetroCore(values, logger=None)
     if core.model is None:
         raise PredictError(f"no usable model: {core.degraded}")
+    if core.cad_error:
+        raise PredictError(core.cad_error)
     out = Path(out)
     res = PredictResult(bag=str(bag), out=out, model_id=core.model_id)
     if not settings_topics:
@@ -195,6 +200,9 @@ def predict_bag(
         w.add_topic(out_topics["quality"], QUALITY_TYPE, [qos_profiles.output()])
         w.add_topic(out_topics["deviations"], POINTCLOUD2, [qos_profiles.cloud_output()])
         w.add_topic(out_topics["corrected"], POINTCLOUD2, [qos_profiles.cloud_output()])
+        if core.cad is not None:  # the cad_mesh parameter (--param cad_mesh=PART.stl): the node's ~/cad_deviations
+            out_topics["cad"] = f"{ns}/cad_deviations"
+            w.add_topic(out_topics["cad"], POINTCLOUD2, [qos_profiles.cloud_output()])
         for m in reader.messages(topics=set(scan_topics) | set(settings_topics)):
             if m.topic in settings_topics:
                 err = core.add_settings(m.msg)
@@ -213,6 +221,10 @@ def predict_bag(
                 if kind in include and getattr(o, kind) is not None:
                     w.write(out_topics[kind], enc(getattr(o, kind)), m.log_time_ns)
             w.write(out_topics["quality"], enc(o.quality), m.log_time_ns)
+            if o.cad is not None:
+                w.write(out_topics["cad"], enc(o.cad), m.log_time_ns)
+            elif o.cad_error:
+                res.notes.append(f"scan at log time {m.log_time_ns} ns: {o.cad_error}")
             res.outputs.append(OutputSet(o.quality, o.deviations if keep_clouds else None,
                                          o.corrected if keep_clouds else None))
             res.inputs.append(m.topic)

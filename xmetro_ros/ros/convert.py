@@ -31,6 +31,7 @@ __all__ = [
     "m_to_mm",
     "mm_to_m",
     "ns_to_stamp",
+    "pose7_to_matrix_mm",
     "pose_from_msg",
     "pose_to_msg",
     "scan_to_cloud",
@@ -96,6 +97,20 @@ def pose_to_msg(pose: HeadPose) -> Pose:
         position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
         orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
     )
+
+
+def pose7_to_matrix_mm(values: Iterable[float]) -> np.ndarray:
+    """A pose parameter ``[x, y, z, qx, qy, qz, qw]`` (metres, quaternion in ROS order; normalised) → the (4, 4)
+    rigid transform in millimetres. Raises ValueError on a wrong length, a non-finite value or a zero quaternion."""
+    from ..geometry import quat_to_matrix
+
+    v = np.asarray(list(values), dtype=np.float64)
+    if v.shape != (7,) or not np.isfinite(v).all():
+        raise ValueError(f"a pose needs 7 finite numbers x, y, z, qx, qy, qz, qw, got {v.tolist()}")
+    t = np.eye(4)
+    t[:3, :3] = quat_to_matrix(v[3:])
+    t[:3, 3] = v[:3] * MM_PER_M
+    return t
 
 
 def pose_from_msg(msg: Pose) -> HeadPose:

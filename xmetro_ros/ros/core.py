@@ -26,7 +26,7 @@ from ..scan_history import JudgedScan, ScanHistory, ServiceError, axes_from_mask
 from ..scanner import ScannerModel, ScanSettings, SettingsError
 from ..srv import Explain, RecommendSettings
 from .cloud import CloudFormatError, validate_cloud, xyz_fields
-from .convert import cloud_to_scan, m_to_mm, settings_from_msg, settings_to_msg, stamp_to_ns
+from .convert import cloud_to_scan, m_to_mm, pose7_to_matrix_mm, settings_from_msg, settings_to_msg, stamp_to_ns
 from .messages import (
     error_code_value,
     explain_response,
@@ -36,10 +36,10 @@ from .messages import (
     recommend_response,
     reference_message,
 )
-from .output_clouds import corrected_cloud, deviations_cloud
+from .output_clouds import cad_cloud, corrected_cloud, deviations_cloud
 from .params import handler_params
 
-__all__ = ["LEGACY_SCANNER_ID", "CoreOutput", "SettingsEntry", "XmetroCore", "model_scanner_id",
+__all__ = ["LEGACY_SCANNER_ID", "CoreOutput", "SettingsEntry", "XmetroCore", "load_cad", "model_scanner_id",
            "reference_checker"]
 
 #: Cards written before 0.2.0 record no scanner: they were all trained on the packaged virtual scanner.
@@ -67,13 +67,18 @@ class SettingsEntry:
 @dataclass
 class CoreOutput:
     """Messages for one scan; ``deviations`` / ``corrected`` are None when the scan is in ERROR; ``reference`` is
-    the ReferenceCheck of a reference scan (None for other scans)."""
+    the ReferenceCheck of a reference scan (None for other scans); ``cad`` the ``~/cad_deviations`` cloud when a
+    CAD part is configured (None otherwise, or when the comparison failed: ``cad_error`` says why, the scan's other
+    outputs stand); ``cad_log`` one line on the comparison."""
 
     quality: ScanQuality
     deviations: PointCloud2 | None
     corrected: PointCloud2 | None
     log: str
     reference: ReferenceCheck | None = None
+    cad: PointCloud2 | None = None
+    cad_error: str = ""
+    cad_log: str = ""
 
 
 class XmetroCore:
@@ -108,6 +113,7 @@ class XmetroCore:
         self._settings_lock = threading.Lock()
         self.history = ScanHistory(int(values["scan_history"]))
         self.reference = reference_checker(values)
+        self.cad, self.cad_error = load_cad(values)
 
     @property
     def model_id(self) -> str:
@@ -269,14 +275,42 @@ class XmetroCore:
         dev_cloud = deviations_cloud(msg.header, points_m, res.deviations, res.flags, out_h, out_w,
                                      unc_mm=res.uncertainty)
         corrected = corrected_cloud(msg, res.deviations, keep, out_h, out_w)
+        cad_msg, cad_pose, cad_error, cad_log = self._cad_map(msg, points_m, res)
         self.history.add(JudgedScan(
             stamp_ns=stamp_ns, frame_id=msg.header.frame_id, n_points=out_h * out_w,
             index=np.asarray(res.prepared.index), points=np.asarray(res.prepared.points), features=res.features,
             predictions=res.predictions, context=_lean_context(res.context), settings=entry.settings, pose=entry.pose,
-            scanner_id=self.scanner.id, model_id=self.model_id, uncertainty=res.row_uncertainty))
+            scanner_id=self.scanner.id, model_id=self.model_id, uncertainty=res.row_uncertainty, cad_pose=cad_pose))
         q.processing_latency = time.monotonic() - t0
         qd = res.quality
-        return CoreOutput(q, dev_cloud, corrected, f"scan {stamp_ns}: {qd['verdict_name']} ({qd['message']})")
+        return CoreOutput(q, dev_cloud, corrected, f"scan {stamp_ns}: {qd['verdict_name']} ({qd['message']})",
+                          cad=cad_msg, cad_error=cad_error, cad_log=cad_log)
+
+    def _cad_map(self, msg: PointCloud2, points_m: np.ndarray, res: Any
+                 ) -> tuple[PointCloud2 | None, np.ndarray | None, str, str]:
+        """(``~/cad_deviations`` cloud, pose used (4, 4) mm, error, log line) of a judged scan against the configured
+        CAD part; all None / "" without one. A failure (e.g. a registration that cannot converge) is returned as
+        the error, never raised: the scan's other outputs stand."""
+        if self.cad is None:  # none configured, or it failed to load (said at start-up and on /diagnostics)
+            return None, None, "", ""
+        from ..cad_judge import cad_deviation
+
+        try:
+            pose = pose7_to_matrix_mm(self.values["cad_pose"])
+            dev = cad_deviation(self.cad, m_to_mm(points_m.astype(np.float64)), res.deviations, res.uncertainty,
+                                flags=res.flags, pose=pose, register=bool(self.values["cad_register"]))
+            cloud = cad_cloud(msg.header, points_m[dev.index], dev.index.astype(np.uint32), dev.before, dev.after,
+                              dev.u_normal, np.asarray(dev.flags, np.uint16))
+        except Exception as e:
+            return None, None, f"CAD comparison failed: {type(e).__name__}: {e}", ""
+        sm = dev.summary()
+        b, a = sm["before"], sm["after"]
+        log = (f"CAD {self.cad.name}: {sm['points']} points, |measured - CAD| p95 {b['p95_abs']:.1f} -> "
+               f"{a['p95_abs']:.1f} um compensated")
+        if dev.registration is not None:
+            r = dev.registration
+            log += f"; registered: RMSE {r.rmse_mm * 1e3:.1f} um, fitness {r.fitness:.3f}"
+        return cloud, dev.pose, "", log
 
     # ------------------------------------------------------------------ services
     def explain(self, req: Explain.Request) -> Explain.Response:
@@ -350,7 +384,7 @@ class XmetroCore:
                             turn_steps=int(v["recommend_turn_steps"]),
                             grazing_incidence_deg=v["grazing_incidence_deg"], grazing_view_deg=v["grazing_view_deg"],
                             min_coverage=v["recommend_min_coverage"], max_seconds=v["recommend_max_seconds"],
-                            progress=progress, cancelled=cancelled)
+                            progress=progress, cancelled=cancelled, occluder=self._occluder(judged))
         except RecommendCancelled:
             raise
         except (ServiceError, ValueError) as e:
@@ -358,6 +392,31 @@ class XmetroCore:
         except Exception as e:
             return failed_response(base, f"recommendation failed: {type(e).__name__}: {e}")
         return recommend_response(rec, judged.frame_id, judged.stamp_ns, self.scanner.id, tol_mm, self.model_id)
+
+
+    def _occluder(self, judged: JudgedScan) -> Any:
+        """The CAD part placed as in the judged scan's CAD map (its self-occlusion for the recommender), or None."""
+        if self.cad is None or judged.cad_pose is None:
+            return None
+        return self.cad.transformed(judged.cad_pose)
+
+
+def load_cad(values: dict[str, Any]) -> tuple[Any, str]:
+    """(the CAD part of the ``cad_mesh`` parameter as a MeshArtifact in its own frame, or None; "" or why it
+    could not be loaded). The mesh queries need open3d: checked here, so a missing extra is said at start-up."""
+    path = str(values.get("cad_mesh", "") or "")
+    if not path:
+        return None, ""
+    try:
+        import open3d  # noqa: F401  (closest points and ray casting of the mesh)
+
+        from ..mesh import MeshArtifact
+
+        return MeshArtifact.from_file(path), ""
+    except ImportError as e:
+        return None, f"cad_mesh {path}: the CAD comparison needs open3d (pip install 'xmetro_ros[train]'): {e}"
+    except Exception as e:
+        return None, f"cad_mesh {path} cannot be loaded: {type(e).__name__}: {e}"
 
 
 def reference_checker(values: dict[str, Any]) -> ReferenceChecker | None:

@@ -81,6 +81,9 @@ class DiagnosticsState:
         self.reference_state: int | None = None  # ReferenceCheck.STATE_* of the last reference scan
         self.reference_message = ""
         self.reference_scans = 0
+        self.cad_error = ""                 # the configured CAD part could not be loaded (start-up, ERROR)
+        self.cad_state = "off"              # the last scan's CAD comparison (its log line), or why it failed
+        self.cad_failed = False             # the last scan's CAD comparison failed (WARN until one succeeds)
         self._start = time.monotonic()
         self._last_scan: float | None = None
         self._latencies: deque[float] = deque(maxlen=100)
@@ -147,6 +150,11 @@ class DiagnosticsState:
             self.reference_state, self.reference_message = int(state), message
             self.reference_scans = int(reference_scans)
 
+    def on_cad(self, text: str, ok: bool) -> None:
+        """The last scan's CAD comparison: its summary line, or (``ok`` False) why it failed."""
+        with self._lock:
+            self.cad_state, self.cad_failed = text, not ok
+
     def on_reference_reset(self) -> None:
         with self._lock:
             self.reference_state, self.reference_message, self.reference_scans = None, "", 0
@@ -171,6 +179,10 @@ class DiagnosticsState:
         if since > self.scan_timeout:
             what = "no scan for" if self._last_scan is not None else "no scan received in"
             out.append((WARN, f"stale: {what} {since:.1f} s (scan_timeout {self.scan_timeout:g} s)"))
+        if self.cad_error:
+            out.append((ERROR, self.cad_error))
+        elif self.cad_failed:
+            out.append((WARN, self.cad_state))
         if self.reference_state in (_REF_WARN, _REF_MISMATCH):
             out.append((WARN, self.reference_message))
         if self.last_verdict is not None:
@@ -226,6 +238,7 @@ class DiagnosticsState:
                 "reference_state": _REF_NAMES.get(self.reference_state, "none"),
                 "reference_scans": self.reference_scans,
                 "reference_message": self.reference_message or "none",
+                "cad": self.cad_error or self.cad_state,
             }
         st = DiagnosticStatus(level=_level_value(lvl), name=self.name, message=msg[:500],
                               hardware_id=self.hardware_id)

@@ -130,8 +130,13 @@ class XmetroWiring(ScanWorker, ServiceHandlers):
         if core.degraded:
             self.get_logger().error(f"starting DEGRADED: {core.degraded}; scans get ERROR MODEL_UNAVAILABLE, "
                                     "services fail")
+        if core.cad_error:
+            self.get_logger().error(f"{core.cad_error}; scans are judged without the CAD comparison")
         self.diag = DiagnosticsState(self.get_name(), core.scanner.id, core.model_id, core.degraded,
                                      scan_timeout=float(values["scan_timeout"]))
+        self.diag.cad_error = core.cad_error
+        self.diag.cad_state = ("off" if not values["cad_mesh"] else "failed to load" if core.cad_error
+                               else f"{values['cad_mesh']}: no scan compared yet")
         self._qmax = int(values["queue_depth"])
         self.core = core
         return core
@@ -144,7 +149,9 @@ class XmetroWiring(ScanWorker, ServiceHandlers):
         self.pub_quality = create(ScanQuality, "~/quality", output_qos())
         self.pub_diag = create(DiagnosticArray, "/diagnostics", output_qos())
         self.pub_reference = create(ReferenceCheck, "~/reference", output_qos())
-        self._outputs = [self.pub_dev, self.pub_corr, self.pub_quality, self.pub_diag, self.pub_reference]
+        self.pub_cad = create(PointCloud2, "~/cad_deviations", output_qos(2))  # published with cad_mesh only
+        self._outputs = [self.pub_dev, self.pub_corr, self.pub_quality, self.pub_diag, self.pub_reference,
+                         self.pub_cad]
 
     def _create_inputs(self) -> None:
         """Subscriptions (QoS overridable by ``qos_overrides.<topic>.subscription...`` parameters), services, the

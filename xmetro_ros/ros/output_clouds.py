@@ -3,6 +3,10 @@
 - ``~/deviations``: one record per (kept) input point, x, y, z as received and the predicted error dx, dy, dz,
   dnorm, their expanded uncertainty (95 %) ux, uy, uz (float32, metres), flags (uint16), 2 bytes of padding:
   point_step 44, every field at an offset aligned to its size in every point;
+- ``~/cad_deviations`` (with a CAD part configured): one record per judged point, x, y, z as received, the signed
+  deviation from the CAD along its outward normal ``before`` and ``after`` the compensation, ``u_normal`` (U
+  carried onto the normal), float32 metres, ``index`` (uint32: the point's flat index in ``~/deviations``), flags
+  (uint16), 2 bytes of padding: point_step 32;
 - ``~/corrected``: the input cloud (same fields, byte order and point layout) with x, y, z + predicted error; the
   residual uncertainty of each corrected coordinate is U (ux, uy, uz of ``~/deviations``).
 
@@ -21,7 +25,8 @@ from sensor_msgs.msg import PointCloud2, PointField
 from .cloud import dtype_from_fields, new_cloud_message
 from .convert import M_PER_MM, mm_to_m
 
-__all__ = ["DEVIATIONS_FIELDS", "DEVIATIONS_POINT_STEP", "corrected_cloud", "deviations_cloud"]
+__all__ = ["CAD_FIELDS", "CAD_POINT_STEP", "DEVIATIONS_FIELDS", "DEVIATIONS_POINT_STEP", "cad_cloud", "corrected_cloud",
+           "deviations_cloud"]
 
 
 #: ``~/deviations`` point layout: (name, offset, PointField datatype); point_step :data:`DEVIATIONS_POINT_STEP`.
@@ -59,6 +64,40 @@ def deviations_cloud(header: Any, points_m: np.ndarray, dev_mm: np.ndarray, flag
                               is_dense=False,
                               is_bigendian=sys.byteorder == "big", fields=fields,
                               point_step=DEVIATIONS_POINT_STEP, row_step=DEVIATIONS_POINT_STEP * int(width))
+    cloud.data = data
+    return cloud
+
+
+#: ``~/cad_deviations`` point layout; point_step :data:`CAD_POINT_STEP`.
+CAD_FIELDS = (("x", 0, PointField.FLOAT32), ("y", 4, PointField.FLOAT32), ("z", 8, PointField.FLOAT32),
+              ("before", 12, PointField.FLOAT32), ("after", 16, PointField.FLOAT32),
+              ("u_normal", 20, PointField.FLOAT32), ("index", 24, PointField.UINT32), ("flags", 28, PointField.UINT16))
+CAD_POINT_STEP = 32
+
+
+def cad_cloud(header: Any, points_m: np.ndarray, index: np.ndarray, before_mm: np.ndarray, after_mm: np.ndarray,
+              u_normal_mm: np.ndarray, flags: np.ndarray) -> PointCloud2:
+    """``~/cad_deviations``: one record per judged point (an unorganized 1 × N cloud): ``points_m`` (N, 3) float32
+    metres as received, the deviations from the CAD along its normal ``before`` / ``after`` the compensation and
+    ``u_normal`` (N,) mm, ``index`` (N,) flat indices into ``~/deviations``, ``flags`` (N,) uint16."""
+    n = len(index)
+    if not (points_m.shape[0] == len(before_mm) == len(after_mm) == len(u_normal_mm) == len(flags) == n):
+        raise ValueError("cad_cloud: every per-point array needs the same length")
+    fields = [PointField(name=name, offset=off, datatype=code, count=1) for name, off, code in CAD_FIELDS]
+    data = array.array("B", b"\0") * (n * CAD_POINT_STEP)
+    if n:
+        view = np.frombuffer(data, dtype=dtype_from_fields(fields, CAD_POINT_STEP), count=n)
+        for k, name in enumerate("xyz"):
+            view[name] = points_m[:, k]
+        view["before"] = mm_to_m(np.asarray(before_mm, np.float64))
+        view["after"] = mm_to_m(np.asarray(after_mm, np.float64))
+        view["u_normal"] = mm_to_m(np.asarray(u_normal_mm, np.float64))
+        view["index"] = index
+        view["flags"] = flags
+        del view
+    cloud = new_cloud_message(header=header, height=1, width=n, is_dense=False,
+                              is_bigendian=sys.byteorder == "big", fields=fields, point_step=CAD_POINT_STEP,
+                              row_step=CAD_POINT_STEP * n)
     cloud.data = data
     return cloud
 

@@ -120,6 +120,15 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("reference_max_mismatch", 0.0005, "m", "a reference scan whose median |error| along the normal "
               "exceeds this does not show the declared sphere: MISMATCH, not monitored", 1e-6, 0.1,
               read_only=True),
+    ParamSpec("cad_mesh", "", "path", "CAD mesh of the part being scanned (STL, PLY or OBJ; millimetres, part "
+              "frame): each judged scan is also compared with it on ~/cad_deviations (measured - CAD along the CAD "
+              "normal before and after the compensation, U along the normal) and ~/recommend_settings counts the "
+              "part's self-occlusion; '' = off. Needs open3d (the [train] extra)", read_only=True),
+    ParamSpec("cad_pose", [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], "m, quaternion", "pose of the CAD part in the scan "
+              "frame (part -> scan): x, y, z, qx, qy, qz, qw; applies from the next scan"),
+    ParamSpec("cad_register", False, "", "refine cad_pose on each scan by point-to-plane ICP on the compensated "
+              "points (xmetro_ros/registration.py; the fit is logged and the registered pose is used for that "
+              "scan's map and its recommendation's occlusion)"),
 )
 _BY_NAME = {p.name: p for p in PARAMS}
 #: Parameters read when the model is loaded (read-only on the plain node; on the lifecycle node settable while
@@ -176,6 +185,8 @@ def validate(changes: dict[str, Any], current: dict[str, Any]) -> str | None:
             vals = list(value)
             if len(vals) != len(spec.default) or not all(math.isfinite(float(x)) for x in vals):
                 return f"{name} must be {len(spec.default)} finite numbers, got {vals}"
+            if name == "cad_pose" and sum(float(x) ** 2 for x in vals[3:]) < 1e-12:
+                return f"{name}: the quaternion qx, qy, qz, qw is zero"
             continue
         if spec.lo is not None and not isinstance(value, (bool, str)) and not spec.lo <= value <= spec.hi:
             return f"{name} = {value} is outside [{spec.lo:g}, {spec.hi:g}] {spec.unit}"

@@ -3,7 +3,8 @@
 worker past ``max_processing_time``.
 
 A mixin of the node's wiring (:class:`xmetro_ros.ros.node.XmetroWiring`): it uses the node's ``core``, ``diag``,
-publishers (``pub_dev``, ``pub_corr``, ``pub_quality``, ``pub_diag``, ``pub_reference``) and logger. Processing in
+publishers (``pub_dev``, ``pub_corr``, ``pub_quality``, ``pub_diag``, ``pub_reference``,
+``pub_cad``) and logger. Processing in
 its own thread keeps the services and parameter changes responsive whatever the executor.
 """
 
@@ -35,6 +36,7 @@ class ScanWorker(NodeMixin):
     pub_quality: Any
     pub_diag: Any
     pub_reference: Any
+    pub_cad: Any
     _outputs: list[Any]
 
     def _init_worker_state(self) -> None:
@@ -142,7 +144,19 @@ class ScanWorker(NodeMixin):
             self.diag.on_timeout()
         if out.reference is not None:
             self._publish_reference(out.reference)
+        self._publish_cad(out)
         self._answer(q)
+
+    def _publish_cad(self, out: Any) -> None:
+        """Publish a scan's CAD map; a failed comparison is logged and goes to /diagnostics (WARN until the next
+        scan's comparison succeeds); the scan's other outputs were published already."""
+        if out.cad is not None:
+            self.pub_cad.publish(out.cad)
+            self.get_logger().debug(out.cad_log)
+        elif out.cad_error:
+            self.get_logger().warning(out.cad_error)
+        if self.diag is not None and (out.cad is not None or out.cad_error):
+            self.diag.on_cad(out.cad_error or out.cad_log, ok=not out.cad_error)
 
     def _publish_reference(self, ref: ReferenceCheck) -> None:
         """Publish a reference scan's check; its state goes to /diagnostics (published at once on a change)."""
