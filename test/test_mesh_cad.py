@@ -28,17 +28,24 @@ def test_compensation_lowers_the_deviation_error_against_cad(handler: ScanHandle
     """Each part (never trained on), the study's low densities at the default exposure, pose known: MAE and p95 of
     |measured − CAD − true form error| drop with the model's compensation (measured factors 1.29-1.84 and
     1.24-1.62); the intervals cover ≥ 90 % of the in-domain points, overall and per region type (types with ≥ 100
-    in-domain points). docs/parts.md has the settings where this does not hold (bowl at 0.1 ms)."""
+    in-domain points), and the points the shape domain flags are where they fail most."""
     r = evaluate_part(part, handler, ScanSettings(6.0, 3.0, 0.5), seed=7, register=False)
     kp = r["cad"]["known_pose"]
     assert kp["after"]["mae_um"] < kp["before"]["mae_um"] / 1.2
     assert kp["after"]["p95_um"] < kp["before"]["p95_um"] / 1.15
     cov = r["coverage"]
-    assert cov["in_domain"]["n"] > 5000 and cov["in_domain"]["coverage"] >= 0.90
+    assert cov["in_domain"]["n"] > 2000 and cov["in_domain"]["coverage"] >= 0.90  # bowl: 2.8k of 32k
     for name, g in cov["regions"].items():
         if g["in_domain"]["n"] >= 100:
             assert g["in_domain"]["coverage"] >= 0.90, (name, g)
     assert r["mae_ratio_to_oracle"][2] < 1.1  # Z, the largest error, near the floor
+    # The shape part of the domain (curvature outside the calibration's spheres and cylinder) says where the
+    # intervals fail: its points are covered less and hold a larger share of the misses than of the points.
+    assert cov["shape_in_domain"]["coverage"] >= 0.90
+    so = cov["shape_out_of_domain"]
+    if so["n"] >= 100:
+        assert so["coverage"] < cov["shape_in_domain"]["coverage"], (so, cov["shape_in_domain"])
+        assert r["misses_shape_out_of_domain_share"] > r["shape_out_of_domain_share"]
 
 
 def test_predict_cad_offline(tmp_path, handler: ScanHandler) -> None:

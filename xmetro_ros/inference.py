@@ -46,13 +46,16 @@ from .set_kernels import from_sets as _from_sets
 from .set_kernels import to_sets as _to_sets
 from .set_kernels import warm_up as _warm_kernels
 
-__all__ = ["AXES", "CARD_FORMAT", "ModelLoadError", "ModelSet", "UncertainPrediction", "session_options"]
+__all__ = ["AXES", "CARD_FORMAT", "SIGMA_CAP_FACTOR", "ModelLoadError", "ModelSet", "UncertainPrediction",
+           "session_options"]
 
 CARD_FORMAT = "xmetro-model-set/1"
 AXES = ("x", "y", "z")
 # Sets per ONNX Runtime run: 32-256 are equally fast, 512 and 1024 10-16 % slower (activations leave the cache);
 # any chunk gives the same bits (bench/bench_uncertainty.py measures and checks both).
 _SET_CHUNK = 128
+#: σ̂ is capped at this multiple of the largest σ̂ of the calibration clouds (card ``uncertainty.sigma_max_mm``).
+SIGMA_CAP_FACTOR = 2.0
 
 
 _BLAS: list[Any] = []  # threadpoolctl's controller, made once (it scans the loaded libraries: ~10 ms)
@@ -147,12 +150,14 @@ class ModelSet:
         self.set_chunk = _SET_CHUNK
         self._lock = threading.Lock()
         self._mv: tuple[np.ndarray, np.ndarray] | None = None
-        # σ̂ ceiling per axis: the largest σ̂ of the calibration clouds (card "uncertainty.sigma_max_mm"). Beyond the
-        # data the spread head extrapolates exponentially (σ̂ = exp(log σ̂) reaches float32 inf on a far-away scene);
-        # there the widening by the domain distance, not an extrapolated σ̂, is what U says. None: no ceiling.
+        # σ̂ ceiling per axis: SIGMA_CAP_FACTOR × the largest σ̂ of the calibration clouds (card
+        # "uncertainty.sigma_max_mm"). Beyond the data the spread head extrapolates exponentially (σ̂ = exp(log σ̂)
+        # reaches float32 inf on a far-away scene); there the widening by the domain distance, not an extrapolated
+        # σ̂, is what U says. The factor leaves room for the tail of a whole scan (the calibration samples 300 points
+        # per cloud): on the shipped bags σ̂ reaches 1.03× the calibration's largest. None: no ceiling.
         smax = (card.get("uncertainty") or {}).get("sigma_max_mm")
         self.log_sigma_max: np.ndarray | None = (
-            np.log(np.asarray(smax, np.float64)).astype(np.float32) if smax is not None else None)
+            np.log(SIGMA_CAP_FACTOR * np.asarray(smax, np.float64)).astype(np.float32) if smax is not None else None)
 
     # ------------------------------------------------------------------ loading
     @classmethod
@@ -432,6 +437,15 @@ class ModelSet:
         err, sig = self.predict_with_sigma(X)
         U, dist = self._expand(sig, X)
         return UncertainPrediction(err, U, sig, dist, self.out_of_domain_mv(X, dist))
+
+    @property
+    def shape_domain(self) -> tuple[float, float, float] | None:
+        """(lo, hi, radius_mm) of the mean curvature (1/mm) the calibration clouds covered (card ``domain_shape``,
+        :mod:`xmetro_ros.learn.shape_domain`), or None when the card has none (then no shape check)."""
+        d = self.card.get("domain_shape")
+        if not d:
+            return None
+        return float(d["lo"]), float(d["hi"]), float(d.get("radius_mm", 1.0))
 
     @property
     def has_sets(self) -> bool:

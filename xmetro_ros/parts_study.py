@@ -93,6 +93,11 @@ def evaluate_part(name: str, handler: Any, settings: Any, *, seed: int = 0, form
     expected = np.asarray(scan.expected_error).reshape(-1, 3)[i]
     region, _ = label_cad_regions(cad, p)
     ood = (flags & fl.FLAG_OUT_OF_DOMAIN) != 0
+    # the shape part of the domain (mean curvature outside the calibration's shapes; U not widened there)
+    full = np.zeros(len(pts), bool)
+    if res.shape_out_of_domain is not None:
+        full[np.asarray(res.prepared.index)] = res.shape_out_of_domain
+    shape = full[i]
     anyq = (flags & (fl.QUALITY_BITS & ~fl.FLAG_OVER_TOLERANCE)) != 0
     ok = np.abs(actual - e) <= u
     model, oracle = _err_stats(e - actual), _err_stats(expected - actual)
@@ -105,6 +110,7 @@ def evaluate_part(name: str, handler: Any, settings: Any, *, seed: int = 0, form
         "coverage": {"all": _cov(ok, np.ones(len(i), bool)), "in_domain": _cov(ok, ~ood),
                      "out_of_domain": _cov(ok, ood), "no_quality_flag": _cov(ok, ~anyq),
                      "quality_flagged": _cov(ok, anyq),
+                     "shape_in_domain": _cov(ok, ~shape), "shape_out_of_domain": _cov(ok, shape),
                      "regions": {r: {"all": _cov(ok, region == k), "in_domain": _cov(ok, (region == k) & ~ood),
                                      "out_of_domain": _cov(ok, (region == k) & ood)}
                                  for k, r in enumerate(REGIONS)}},
@@ -112,6 +118,8 @@ def evaluate_part(name: str, handler: Any, settings: Any, *, seed: int = 0, form
         # where the misses are: share of the (point, axis) pairs outside U that the judge flags out of domain
         "misses_out_of_domain_share": float(ood[:, None].repeat(3, 1)[~ok].mean()) if (~ok).any() else None,
         "quality_flagged_share": float(anyq.mean()) if len(i) else None,
+        "shape_out_of_domain_share": float(shape.mean()) if len(i) else None,
+        "misses_shape_out_of_domain_share": float(shape[:, None].repeat(3, 1)[~ok].mean()) if (~ok).any() else None,
     }
     # Deviation map against the CAD, pose known; true form error along the CAD normal at the CAD point.
     dev = cad_deviation(cad, p, e, u, flags=flags, pose=PRESENTATION)
@@ -141,7 +149,7 @@ def evaluate_part(name: str, handler: Any, settings: Any, *, seed: int = 0, form
             "rotation_deg": float(np.degrees(np.arccos(np.clip((np.trace(err[:3, :3]) - 1) / 2, -1, 1))))}
     if keep_maps:
         out["maps"] = {"points": p, "before": rb, "after": ra, "u_normal": dev.u_normal, "region": region,
-                       "ood": ood, "covered": ok.all(axis=1)}
+                       "ood": ood, "shape_ood": shape, "covered": ok.all(axis=1)}
     return out
 
 
@@ -257,6 +265,19 @@ def markdown(summary: dict[str, Any]) -> str:
                 f"{_pct(c['out_of_domain']['coverage'])} | {_pct(r['out_of_domain_share'])} / {_pct(miss)} | "
                 f"{kp['before']['mae_um']:.2f} → {kp['after']['mae_um']:.2f}, {kp['before']['p95_um']:.2f} → "
                 f"{kp['after']['p95_um']:.2f} | {kp['factor_mae']:.2f}, {kp['factor_p95']:.2f} | {reg} |")
+    lines += ["", "The shape part of the domain (mean curvature outside the calibration's shapes; U not widened "
+              "there): coverage where the shape is in / out of the domain, and the out-of-domain share of the points "
+              "and of the misses (point, axis pairs outside U):", "",
+              "| part | settings | coverage shape in / out | shape out-of-domain share (points / misses) |",
+              "|---|---|---|---|"]
+    for name, rows in summary["parts"].items():
+        for r in rows:
+            c = r["coverage"]
+            if "shape_in_domain" not in c:
+                continue
+            lines.append(f"| {name} | {'/'.join(f'{x:g}' for x in r['settings'])} | "
+                         f"{_pct(c['shape_in_domain']['coverage'])} / {_pct(c['shape_out_of_domain']['coverage'])} | "
+                         f"{_pct(r['shape_out_of_domain_share'])} / {_pct(r['misses_shape_out_of_domain_share'])} |")
     lines += ["", "Coverage per region type (all points / in domain; n all), every settings:", "",
               "| part | settings | " + " | ".join(REGIONS) + " |", "|---|---|" + "---|" * len(REGIONS)]
     for name, rows in summary["parts"].items():
@@ -281,6 +302,10 @@ def _condense(summary: dict[str, Any]) -> dict[str, Any]:
             "coverage_out_of_domain": r["coverage"]["out_of_domain"]["coverage"],
             "out_of_domain_share": r["out_of_domain_share"],
             "misses_out_of_domain_share": r["misses_out_of_domain_share"],
+            "coverage_shape_in_domain": r["coverage"]["shape_in_domain"]["coverage"],
+            "coverage_shape_out_of_domain": r["coverage"]["shape_out_of_domain"]["coverage"],
+            "shape_out_of_domain_share": r["shape_out_of_domain_share"],
+            "misses_shape_out_of_domain_share": r["misses_shape_out_of_domain_share"],
             "coverage_by_region": {k: v["all"]["coverage"] for k, v in r["coverage"]["regions"].items()},
             "region_points": {k: v["all"]["n"] for k, v in r["coverage"]["regions"].items()},
             "cad_known_pose": {k: r["cad"]["known_pose"][k] for k in ("before", "after", "factor_mae", "factor_p95")},

@@ -129,6 +129,8 @@ class ScanResult:
         row_uncertainty: (M, 3) float64 mm U for the rows of ``prepared`` (same order as ``predictions``).
         decisions: (N,) uint8 decision class (flags.CONFORMING / NON_CONFORMING / UNDECIDED) per point; 255 where
             there is no prediction.
+        shape_out_of_domain: (M,) bool per row of ``prepared``: a surface shape (mean curvature) outside the model's
+            calibration shapes (flagged OUT_OF_DOMAIN, U not widened); None when the card has no ``domain_shape``.
     """
 
     deviations: np.ndarray
@@ -143,6 +145,7 @@ class ScanResult:
     uncertainty: np.ndarray | None = None
     row_uncertainty: np.ndarray | None = None
     decisions: np.ndarray | None = None
+    shape_out_of_domain: np.ndarray | None = None
 
 
 #: ``ScanResult.decisions`` of a point without a prediction.
@@ -156,10 +159,11 @@ def warm_up() -> float:
     import time
 
     from . import scan_stats
-    from .preprocess import grid_kernels
+    from .preprocess import curvature, grid_kernels
 
     t = time.perf_counter()
     grid_kernels.warm_up()
+    curvature.grid_mean_curvature(np.zeros((1, 3)), np.ones((1, 3)), np.zeros(1, np.int64), (2, 2), 1.0, 1.0)
     flags = np.array([0, 1, 3, 64], np.uint16)
     scan_stats.flag_tally(flags, fl.FLAG_BITS)
     scan_stats.abs_error_stats(np.ones((4, 3)), flags > 0)
@@ -312,6 +316,9 @@ class ScanHandler:
         kept_flags |= fl.domain_flags(X, lo, hi, p.domain_margin)
         if mv_ood is not None:  # the multivariate domain complements the per-feature range check
             kept_flags[mv_ood] |= fl.FLAG_OUT_OF_DOMAIN
+        shape_ood = self._shape_out_of_domain(prepared)
+        if shape_ood is not None:  # a surface shape the calibration never covered (concave, sharp): no widening
+            kept_flags[shape_ood] |= fl.FLAG_OUT_OF_DOMAIN
         kept_flags[np.asarray(prepared.normal_quality) < p.normal_quality_min] |= fl.FLAG_UNRELIABLE_NORMAL
         dnorm = np.sqrt(np.einsum("ij,ij->i", pred, pred))
         kept_flags[dnorm > p.tolerance_mm] |= fl.FLAG_OVER_TOLERANCE
@@ -334,7 +341,22 @@ class ScanHandler:
                                  U=U[finite & ~no_u], decisions=cls[finite], note=unc_note)
         return ScanResult(deviations=dev, flags=flags, quality=quality, prepared=prepared, features=X,
                           predictions=pred, context=ctx, scan=scan, kept=kept, uncertainty=unc, row_uncertainty=U,
-                          decisions=decisions)
+                          decisions=decisions, shape_out_of_domain=shape_ood)
+
+    def _shape_out_of_domain(self, prepared: Any) -> np.ndarray | None:
+        """(M,) bool: kept points whose mean curvature lies outside the model's shape domain widened by
+        ``domain_margin`` (card ``domain_shape``); None when the card has none. NaN curvature (unorganized scan,
+        scan border) is not flagged."""
+        dom = getattr(self.model, "shape_domain", None)
+        if dom is None:
+            return None
+        from .preprocess.curvature import mean_curvature
+
+        lo, hi, radius = dom
+        m = self.params.domain_margin * (hi - lo)
+        c = mean_curvature(prepared, radius)
+        with np.errstate(invalid="ignore"):
+            return (c < lo - m) | (c > hi + m)
 
     def summarize(self, flags: np.ndarray, pred: np.ndarray, n_valid: int, settings_defaulted: bool,
                   decimated: bool, n_received: int, finite: np.ndarray | None = None, U: np.ndarray | None = None,

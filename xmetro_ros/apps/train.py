@@ -89,18 +89,23 @@ def _calibrate_default(model_dir: Path, profile: str, seed: int) -> None:
     from ..dataset import build_table
     from ..features import STUDY_FEATURES
     from ..learn.families import get_profile
+    from ..learn.shape_domain import shape_domain_of_scans, write_shape_domain
     from ..learn.uncertainty import calibrate
     from ..sim.campaign import study_campaign
 
     prof = get_profile(profile)
     cal_seed = seed + CALIBRATION_SEED_OFFSET
     items = study_campaign(seed=cal_seed, **dict(prof.campaign))
-    table = build_table([it.simulate() for it in items], list(STUDY_FEATURES), max_points_per_cloud=300,
-                        seed=cal_seed)
+    scans = [it.simulate() for it in items]
+    table = build_table(scans, list(STUDY_FEATURES), max_points_per_cloud=300, seed=cal_seed)
     labels = [f"campaign seed {cal_seed} item {i}: {c['label']} {c['artifact']['kind']}"
               for i, c in enumerate(table.clouds)]
     block = calibrate(model_dir, table.X, table.y, table.cloud_id, cloud_labels=labels)
-    print(f"calibrated on {len(items)} clouds: multipliers {[round(k, 3) for k in block['multiplier']]}")
+    # The calibration clouds are the training campaign's shapes: their curvature range is the shape domain.
+    shape = shape_domain_of_scans(scans, items[0].scanner if items else None)
+    write_shape_domain(model_dir, shape)
+    print(f"calibrated on {len(items)} clouds: multipliers {[round(k, 3) for k in block['multiplier']]}; "
+          f"shape domain: mean curvature {shape['lo']:.4f} to {shape['hi']:.4f} /mm")
 
 
 def run_export_default(args: argparse.Namespace) -> int:

@@ -68,7 +68,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("grazing_incidence_deg", 75.0, "deg", "flag GRAZING_INCIDENCE above this incidence angle", 0.0, 90.0),
     ParamSpec("grazing_view_deg", 75.0, "deg", "flag GRAZING_VIEW above this view angle", 0.0, 90.0),
     ParamSpec("domain_margin", 0.05, "fraction", "OUT_OF_DOMAIN margin as a share of each feature's training "
-              "range and of the multivariate domain's threshold", 0.0, 10.0),
+              "range, of the multivariate domain's threshold and of the shape domain's curvature range", 0.0, 10.0),
     ParamSpec("normal_quality_min", 0.3, "0..1", "flag UNRELIABLE_NORMAL below this normal quality", 0.0, 1.0),
     ParamSpec("warn_flagged_fraction", 0.25, "fraction", "WARN when more valid points are flagged", 0.0, 1.0),
     ParamSpec("rescan_usable_fraction", 0.5, "fraction", "RESCAN when fewer valid points are unflagged",
