@@ -16,7 +16,7 @@ the mesh parts (docs/parts.md): the intervals' misses concentrate there.
 
 Noise: about 1 mm apart the normals' own noise (their 5 × 5 fit) moves H by ~0.01 /mm at 0.1 ms exposure; the
 sphere Ø35 reads 0.056 (1/R = 0.057) with 90 % of its points within ±0.01. Unorganized clouds: NaN (no grid).
-Compiled with numba (a few ms on a 180k-point scan).
+Compiled with numba: 6 ms on a 167k-point scan here (a grid of row numbers, 4 bytes a cell; the points read in place).
 """
 
 from __future__ import annotations
@@ -33,14 +33,16 @@ _MIN_DIRECTIONS = 3  # fewer valid neighbours (scan border, holes): NaN
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _curvature(P: np.ndarray, N: np.ndarray, kr: int, kc: int) -> np.ndarray:
-    """(H, W) mean curvature from (H, W, 3) float64 points and normals (NaN = no point)."""
-    h, w, _ = P.shape
-    out = np.full((h, w), np.nan)
+def _curvature(rows: np.ndarray, P: np.ndarray, N: np.ndarray, kr: int, kc: int) -> np.ndarray:
+    """(M,) mean curvature of the M points P / N (M, 3) laid out on the grid ``rows`` (H, W): row of each cell's
+    point, −1 where none. The grid holds 4 bytes a cell; the points are read where they are."""
+    h, w = rows.shape
+    out = np.full(P.shape[0], np.nan)
     offs = ((kr, 0), (-kr, 0), (0, kc), (0, -kc), (kr, kc), (-kr, -kc), (kr, -kc), (-kr, kc))
     for i in range(h):
         for j in range(w):
-            if not np.isfinite(P[i, j, 0]) or not np.isfinite(N[i, j, 0]):
+            a0 = rows[i, j]
+            if a0 < 0:
                 continue
             acc = 0.0
             cnt = 0
@@ -48,19 +50,19 @@ def _curvature(P: np.ndarray, N: np.ndarray, kr: int, kc: int) -> np.ndarray:
                 a, b = i + dr, j + dc
                 if a < 0 or a >= h or b < 0 or b >= w:
                     continue
-                if not np.isfinite(P[a, b, 0]) or not np.isfinite(N[a, b, 0]):
+                k = rows[a, b]
+                if k < 0:
                     continue
-                d0 = P[a, b, 0] - P[i, j, 0]
-                d1 = P[a, b, 1] - P[i, j, 1]
-                d2 = P[a, b, 2] - P[i, j, 2]
+                d0 = P[k, 0] - P[a0, 0]
+                d1 = P[k, 1] - P[a0, 1]
+                d2 = P[k, 2] - P[a0, 2]
                 dd = d0 * d0 + d1 * d1 + d2 * d2
-                if dd <= 0.0:
+                if not dd > 0.0:  # coincident or non-finite
                     continue
-                acc += ((N[a, b, 0] - N[i, j, 0]) * d0 + (N[a, b, 1] - N[i, j, 1]) * d1
-                        + (N[a, b, 2] - N[i, j, 2]) * d2) / dd
+                acc += ((N[k, 0] - N[a0, 0]) * d0 + (N[k, 1] - N[a0, 1]) * d1 + (N[k, 2] - N[a0, 2]) * d2) / dd
                 cnt += 1
             if cnt >= _MIN_DIRECTIONS:
-                out[i, j] = acc / cnt
+                out[a0] = acc / cnt
     return out
 
 
@@ -73,20 +75,18 @@ def grid_mean_curvature(points: np.ndarray, normals: np.ndarray, index: np.ndarr
     if len(shape) != 2 or m == 0:
         return np.full(m, np.nan)
     h, w = int(shape[0]), int(shape[1])
-    P = np.full((h * w, 3), np.nan)
-    N = np.full((h * w, 3), np.nan)
-    idx = np.asarray(index, dtype=np.int64)
-    P[idx] = points
-    N[idx] = normals
+    rows = np.full(h * w, -1, dtype=np.int32)
+    rows[np.asarray(index, dtype=np.int64)] = np.arange(m, dtype=np.int32)
     kr = max(1, round(radius_mm * float(direction_density)))
     kc = max(1, round(radius_mm * float(lateral_density)))
-    return _curvature(P.reshape(h, w, 3), N.reshape(h, w, 3), kr, kc).reshape(-1)[idx]
+    P = np.ascontiguousarray(points, dtype=np.float64)
+    N = np.ascontiguousarray(normals, dtype=np.float32)
+    return _curvature(rows.reshape(h, w), P, N, kr, kc)
 
 
 def mean_curvature(prepared: Any, radius_mm: float = RADIUS_MM) -> np.ndarray:
     """(M,) mean curvature (1/mm) of a :class:`~xmetro_ros.preprocess.Prepared` scan's kept points (NaN when the
     scan is unorganized)."""
     s = prepared.settings
-    return grid_mean_curvature(np.asarray(prepared.points, np.float64), np.asarray(prepared.normals, np.float64),
-                               prepared.index, tuple(prepared.shape), s.lateral_density, s.direction_density,
-                               radius_mm)
+    return grid_mean_curvature(prepared.points, prepared.normals, prepared.index, tuple(prepared.shape),
+                               s.lateral_density, s.direction_density, radius_mm)
