@@ -37,6 +37,7 @@ from .messages import (
     reference_message,
 )
 from .output_clouds import cad_cloud, corrected_cloud, deviations_cloud
+from .output_clouds import warm_up as warm_output_kernels
 from .params import handler_params
 
 __all__ = ["LEGACY_SCANNER_ID", "CoreOutput", "SettingsEntry", "XmetroCore", "load_cad", "model_scanner_id",
@@ -109,6 +110,7 @@ class XmetroCore:
         except Exception as e:
             self.degraded = f"model unavailable: {e}"
         self.handler = ScanHandler(self.model, self.scanner, handler_params(self.values))
+        warm_output_kernels()  # the output record kernel, compiled or loaded now rather than on the first scan
         self._settings: deque[SettingsEntry] = deque(maxlen=int(values["settings_history"]))
         self._settings_lock = threading.Lock()
         self.history = ScanHistory(int(values["scan_history"]))

@@ -20,13 +20,14 @@ import sys
 from typing import Any
 
 import numpy as np
+from numba import njit
 from sensor_msgs.msg import PointCloud2, PointField
 
 from .cloud import dtype_from_fields, new_cloud_message
 from .convert import M_PER_MM, mm_to_m
 
 __all__ = ["CAD_FIELDS", "CAD_POINT_STEP", "DEVIATIONS_FIELDS", "DEVIATIONS_POINT_STEP", "cad_cloud", "corrected_cloud",
-           "deviations_cloud"]
+           "deviations_cloud", "warm_up"]
 
 
 #: ``~/deviations`` point layout: (name, offset, PointField datatype); point_step :data:`DEVIATIONS_POINT_STEP`.
@@ -37,6 +38,32 @@ DEVIATIONS_FIELDS = (("x", 0, PointField.FLOAT32), ("y", 4, PointField.FLOAT32),
 DEVIATIONS_POINT_STEP = 44
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def _fill_deviations(rec: np.ndarray, rec16: np.ndarray, points_m: np.ndarray, dev_mm: np.ndarray,
+                     unc_mm: np.ndarray, has_unc: bool, flags: np.ndarray) -> None:
+    """One pass over the 44-byte records (``rec`` their float32 view (N, 11), ``rec16`` their uint16 view (N, 22)):
+    the float operations of the numpy version, in its order — metres = float32(mm × 1e-3), dnorm = float32 sqrt of
+    ((dx² + dy²) + dz²) in float32 — so the bytes are the same."""
+    nan32 = np.float32(np.nan)
+    for i in range(rec.shape[0]):
+        acc = np.float32(0.0)
+        for k in range(3):
+            rec[i, k] = points_m[i, k]
+            d = np.float32(dev_mm[i, k] * 1e-3)
+            rec[i, 3 + k] = d
+            acc += d * d
+            rec[i, 7 + k] = np.float32(unc_mm[i, k] * 1e-3) if has_unc else nan32
+        rec[i, 6] = np.sqrt(acc)
+        rec16[i, 20] = flags[i]
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the record kernel now, not on the first scan."""
+    rec = np.zeros((1, DEVIATIONS_POINT_STEP // 4), np.float32)
+    _fill_deviations(rec, rec.view(np.uint16), np.zeros((1, 3), np.float32), np.zeros((1, 3)), np.zeros((1, 3)), True,
+                     np.zeros(1, np.uint16))
+
+
 def deviations_cloud(header: Any, points_m: np.ndarray, dev_mm: np.ndarray, flags: np.ndarray, height: int,
                      width: int, unc_mm: np.ndarray | None = None) -> PointCloud2:
     """``~/deviations``: ``points_m`` (N, 3) float32 metres as received, ``dev_mm`` (N, 3) predicted error in mm
@@ -45,21 +72,17 @@ def deviations_cloud(header: Any, points_m: np.ndarray, dev_mm: np.ndarray, flag
     n = int(height) * int(width)
     if points_m.shape[0] != n or dev_mm.shape[0] != n or flags.shape[0] != n:
         raise ValueError(f"height {height} × width {width} != {points_m.shape[0]} points")
-    dev_m = mm_to_m(dev_mm).astype(np.float32)
-    dnorm = np.sqrt(np.einsum("ij,ij->i", dev_m, dev_m))
-    u_m = np.full(dev_m.shape, np.nan, np.float32) if unc_mm is None else mm_to_m(unc_mm).astype(np.float32)
     fields = [PointField(name=name, offset=off, datatype=code, count=1) for name, off, code in DEVIATIONS_FIELDS]
-    dtype = dtype_from_fields(fields, DEVIATIONS_POINT_STEP)
     data = array.array("B", b"\0") * (n * DEVIATIONS_POINT_STEP)  # zeroed: the padding bytes are 0
     if n:
-        view = np.frombuffer(data, dtype=dtype, count=n)
-        for k, name in enumerate("xyz"):
-            view[name] = points_m[:, k]
-            view["d" + name] = dev_m[:, k]
-            view["u" + name] = u_m[:, k]
-        view["dnorm"] = dnorm
-        view["flags"] = flags
-        del view
+        # One compiled pass over the records (per-field strided numpy writes took ~17 ms on 167k points).
+        rec = np.frombuffer(data, dtype=np.float32).reshape(n, DEVIATIONS_POINT_STEP // 4)
+        rec16 = np.frombuffer(data, dtype=np.uint16).reshape(n, DEVIATIONS_POINT_STEP // 2)
+        unc = np.zeros((1, 3)) if unc_mm is None else np.ascontiguousarray(unc_mm, dtype=np.float64)
+        _fill_deviations(rec, rec16, np.ascontiguousarray(points_m, dtype=np.float32),
+                         np.ascontiguousarray(dev_mm, dtype=np.float64), unc, unc_mm is not None,
+                         np.ascontiguousarray(flags, dtype=np.uint16))
+        del rec, rec16
     cloud = new_cloud_message(header=header, height=int(height), width=int(width),
                               is_dense=False,
                               is_bigendian=sys.byteorder == "big", fields=fields,
