@@ -207,3 +207,17 @@ def test_domain_distance_leaves_blas_threads_as_they_were(default, features):
         for t in ts:
             t.join()
         assert blas_threads() == before
+
+
+@pytest.mark.parametrize("n", (1, 137, 6449))
+def test_batch_with_uncertainty_is_each_version_alone(default, features, n):
+    """The recommender's one-run batch (errors and U of Q versions from the same ONNX runs) gives, bit for bit,
+    what ``predict_with_uncertainty`` gives each version on its own (and ``predict_batch``'s two outputs)."""
+    X = features[:n]
+    Xq = np.stack([X, X[::-1].copy(), X * np.float32(1.01)])
+    d, U = default.predict_batch_with_uncertainty(Xq)
+    for k in range(len(Xq)):
+        r = default.predict_with_uncertainty(Xq[k])
+        assert np.array_equal(d[k], r.errors) and np.array_equal(U[k], r.U)
+    assert np.array_equal(d, default.predict_batch(Xq))
+    assert np.array_equal(U, default.predict_batch(Xq, output="uncertainty"))
