@@ -4,6 +4,7 @@ outlier removal (open3d's definition) and the covariance normals (closed-form 3�
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from .points import dedupe
 
@@ -74,11 +75,12 @@ def _smallest_eigvec_sym3(a00, a01, a02, a11, a12, a22):
     return normal, l0 * s, l1 * s, l2 * s
 
 
-def _knn_normals(
+def _knn_normals_numpy(
     points: np.ndarray, rows: np.ndarray, dist: np.ndarray, idx: np.ndarray, allowed: np.ndarray, radius_mm: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Normals (R, 3) float32 (NaN where undefined) and planarity quality (R,) float32 of ``points[rows]`` (points
-    (U, 3) mm) from their kNN (dist, idx (R, k) into points), using only the neighbours ``allowed`` (e.g. not
+    """The numpy reference of the compiled :func:`_knn_normals` (test_preprocess.py compares them). Normals (R, 3)
+    float32 (NaN where undefined) and planarity quality (R,) float32 of ``points[rows]`` (points (U, 3) mm) from their
+    kNN (dist, idx (R, k) into points), using only the neighbours ``allowed`` (e.g. not
     outliers, (U,) bool) and within
     ``radius_mm`` (open3d's hybrid search). Covariance of the neighbour offsets from the query point in float32,
     column-wise (no small BLAS matmuls); eigenvectors in closed form. Quality = 1 − λ0/λ1 (eigenvalues ascending):
@@ -107,6 +109,92 @@ def _knn_normals(
         quality = np.where(ok, np.clip(1.0 - np.maximum(l0, 0) / l1, 0.0, 1.0), 0.0).astype(np.float32)
     normal[~ok] = np.nan
     return normal.astype(np.float32), quality
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _knn_normals_kernel(c: np.ndarray, rows: np.ndarray, dist: np.ndarray, idx: np.ndarray, allowed: np.ndarray,
+                        radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Compiled :func:`_knn_normals_numpy`: the same rules and formulas row by row (float32 offsets from the
+    centred coordinates ``c`` (U, 3) float32, float64 moments, the closed-form eigenvector), without the (R, k)
+    temporaries. Sums run in another order than numpy's einsum: normals agree to ~1e-7 (test_preprocess.py)."""
+    r_n, k = idx.shape
+    normals = np.full((r_n, 3), np.nan, np.float32)
+    quality = np.zeros(r_n, np.float32)
+    for r in range(r_n):
+        q = rows[r]
+        s0 = s1 = s2 = 0.0
+        s00 = s01 = s02 = s11 = s12 = s22 = 0.0
+        cnt = 0
+        for j in range(k):
+            i = idx[r, j]
+            if not (allowed[i] and dist[r, j] <= radius_mm):
+                continue
+            g0 = np.float32(c[i, 0] - c[q, 0])
+            g1 = np.float32(c[i, 1] - c[q, 1])
+            g2 = np.float32(c[i, 2] - c[q, 2])
+            s0 += float(g0)
+            s1 += float(g1)
+            s2 += float(g2)
+            s00 += float(np.float32(g0 * g0))  # float32 products, as numpy's float32 einsum
+            s01 += float(np.float32(g0 * g1))
+            s02 += float(np.float32(g0 * g2))
+            s11 += float(np.float32(g1 * g1))
+            s12 += float(np.float32(g1 * g2))
+            s22 += float(np.float32(g2 * g2))
+            cnt += 1
+        if cnt < 3:
+            continue
+        inv = 1.0 / cnt
+        m0, m1, m2 = s0 * inv, s1 * inv, s2 * inv
+        a00, a01, a02 = s00 * inv - m0 * m0, s01 * inv - m0 * m1, s02 * inv - m0 * m2
+        a11, a12, a22 = s11 * inv - m1 * m1, s12 * inv - m1 * m2, s22 * inv - m2 * m2
+        # _smallest_eigvec_sym3, one matrix
+        scale = a00 + a11 + a22
+        sc = scale if scale > 0 else 1.0
+        a00, a01, a02, a11, a12, a22 = a00 / sc, a01 / sc, a02 / sc, a11 / sc, a12 / sc, a22 / sc
+        qq = (a00 + a11 + a22) / 3
+        b00, b11, b22 = a00 - qq, a11 - qq, a22 - qq
+        p2 = (b00 * b00 + b11 * b11 + b22 * b22 + 2 * (a01 * a01 + a02 * a02 + a12 * a12)) / 6
+        p = np.sqrt(p2)
+        det = b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02)
+        rr = det / (2 * p * p2) if p > 0 else 0.0
+        rr = min(1.0, max(-1.0, rr))
+        phi = np.arccos(rr) / 3
+        l2 = qq + 2 * p * np.cos(phi)
+        l0 = qq + 2 * p * np.cos(phi + 2 * np.pi / 3)
+        l1 = 3 * qq - l2 - l0
+        x0, x1, x2 = a00 - l0, a01, a02
+        y0, y1, y2 = a01, a11 - l0, a12
+        z0, z1, z2 = a02, a12, a22 - l0
+        c00, c01, c02 = x1 * y2 - x2 * y1, x2 * y0 - x0 * y2, x0 * y1 - x1 * y0
+        c10, c11, c12 = x1 * z2 - x2 * z1, x2 * z0 - x0 * z2, x0 * z1 - x1 * z0
+        c20, c21, c22 = y1 * z2 - y2 * z1, y2 * z0 - y0 * z2, y0 * z1 - y1 * z0
+        n0 = c00 * c00 + c01 * c01 + c02 * c02
+        n1 = c10 * c10 + c11 * c11 + c12 * c12
+        n2 = c20 * c20 + c21 * c21 + c22 * c22
+        if n0 >= n1 and n0 >= n2:
+            v0, v1, v2, nn = c00, c01, c02, n0
+        elif n1 >= n2:
+            v0, v1, v2, nn = c10, c11, c12, n1
+        else:
+            v0, v1, v2, nn = c20, c21, c22, n2
+        nn = np.sqrt(nn)
+        l0s, l1s, l2s = l0 * sc, l1 * sc, l2 * sc
+        if not (nn > 1e-30 and l1s > 1e-12 * max(l2s, 1e-300)):
+            continue
+        normals[r, 0], normals[r, 1], normals[r, 2] = v0 / nn, v1 / nn, v2 / nn
+        quality[r] = min(1.0, max(0.0, 1.0 - max(l0s, 0.0) / l1s))
+    return normals, quality
+
+
+def _knn_normals(
+    points: np.ndarray, rows: np.ndarray, dist: np.ndarray, idx: np.ndarray, allowed: np.ndarray, radius_mm: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """As :func:`_knn_normals_numpy`, compiled (numba): ~10× faster on a 180k cloud (no (R, k) temporaries)."""
+    pc = (points - points.mean(axis=0)).astype(np.float32)
+    return _knn_normals_kernel(pc, np.ascontiguousarray(rows, np.int64), np.ascontiguousarray(dist, np.float64),
+                               np.ascontiguousarray(idx, np.int64), np.ascontiguousarray(allowed, np.bool_),
+                               float(radius_mm))
 
 
 def _knn_unorganized(
