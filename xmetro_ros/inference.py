@@ -47,7 +47,7 @@ from .set_kernels import to_sets as _to_sets
 from .set_kernels import warm_up as _warm_kernels
 
 __all__ = ["AXES", "CARD_FORMAT", "SIGMA_CAP_FACTOR", "ModelLoadError", "ModelSet", "UncertainPrediction",
-           "session_options"]
+           "session_options", "update_card"]
 
 CARD_FORMAT = "xmetro-model-set/1"
 AXES = ("x", "y", "z")
@@ -73,6 +73,15 @@ def _one_blas_thread() -> Iterator[None]:
             _BLAS.append(ThreadpoolController())
         with _BLAS[0].limit(limits=1, user_api="blas"):
             yield
+
+
+def update_card(model_dir: str | Path, **blocks: Any) -> None:
+    """Write ``blocks`` (name → JSON-able value) into the card of ``model_dir``, its other entries unchanged (the
+    calibration steps add ``uncertainty``, ``domain_mv``, ``domain_shape`` to an exported model set)."""
+    p = Path(model_dir) / "card.json"
+    card = json.loads(p.read_text())
+    card.update(blocks)
+    p.write_text(json.dumps(card, indent=1, sort_keys=True))
 
 
 def session_options(threads: int = 1) -> Any:
@@ -329,20 +338,16 @@ class ModelSet:
         """(Q, P, F) → (Q, P, 3): Q versions of the same P-point cloud, each predicted as ``predict`` would
         (same set partition for every version). Used by the SHAP explainer and the recommender. Rows must be
         finite. ``output="uncertainty"``: U as :meth:`predict_with_uncertainty` instead of the errors."""
+        if output != "error":  # U as predict_with_uncertainty computes it, from the same run's log σ̂
+            return self.predict_batch_with_uncertainty(Xq)[1]
         Xq = np.asarray(Xq, dtype=np.float32)
         q, p, f = Xq.shape
         out = np.empty((q, p, 3))
         if p == 0:
             return out
         order, pos = set_order(p, self.set_size, self.partition_seed)
-        flat = _to_sets(Xq, pos, order)  # (Q, S, F): the versions' sets end to end
-        sets = flat.reshape(-1, self.set_size, f)
-        if output == "error":
-            ys = self._run_sets(sets, False)[0]
-        else:  # U as predict_with_uncertainty computes it, from the same run's log σ̂
-            y = self._run_sets(sets, True)
-            ys, _ = self._expand(np.exp(y[1]).astype(np.float64).reshape(-1, 3), sets.reshape(-1, f))
-        _from_sets(ys.reshape(q, -1, 3), order, out)
+        sets = _to_sets(Xq, pos, order).reshape(-1, self.set_size, f)  # the versions' sets end to end
+        _from_sets(self._run_sets(sets, False)[0].reshape(q, -1, 3), order, out)
         return out
 
     def predict_batch_with_uncertainty(self, Xq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

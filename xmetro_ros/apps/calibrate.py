@@ -97,17 +97,14 @@ def _uncertainty(model_dirs: dict[str, Path], train: Any, cal: Any, cov: Any, ca
                  log: Any) -> dict[str, Any]:
     """Conformal calibration of each model set on the calibration table, multivariate domain of the training rows,
     interval metrics on the coverage table (per family: the card block and per axis coverage / mean U in mm)."""
-    from ..inference import ModelSet
+    from ..inference import ModelSet, update_card
     from ..learn.uncertainty import calibrate as conformal
     from ..learn.uncertainty import fit_domain, interval_metrics, predict_clouds
 
     out: dict[str, Any] = {}
     domain = fit_domain(train.X)
     for fam, d in model_dirs.items():
-        card_path = d / "card.json"
-        card = json.loads(card_path.read_text())
-        card["domain_mv"] = domain
-        card_path.write_text(json.dumps(card, indent=1, sort_keys=True))
+        update_card(d, domain_mv=domain)
         block = conformal(d, cal.X, cal.y, cal.cloud_id, cloud_labels=cal_labels)
         pr = predict_clouds(ModelSet.load(d), cov.X, cov.cloud_id)
         m = interval_metrics(pr["errors"], pr["U"], cov.y)  # recordings carry no simulator truth (oracle std)

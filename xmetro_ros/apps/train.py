@@ -88,8 +88,9 @@ def _calibrate_default(model_dir: Path, profile: str, seed: int) -> None:
     cloud (learn/uncertainty.py)."""
     from ..dataset import build_table
     from ..features import STUDY_FEATURES
+    from ..inference import update_card
     from ..learn.families import get_profile
-    from ..learn.shape_domain import shape_domain_of_scans, write_shape_domain
+    from ..learn.shape_domain import shape_domain_of_scans
     from ..learn.uncertainty import calibrate
     from ..sim.campaign import study_campaign
 
@@ -103,7 +104,7 @@ def _calibrate_default(model_dir: Path, profile: str, seed: int) -> None:
     block = calibrate(model_dir, table.X, table.y, table.cloud_id, cloud_labels=labels)
     # The calibration clouds are the training campaign's shapes: their curvature range is the shape domain.
     shape = shape_domain_of_scans(scans, items[0].scanner if items else None)
-    write_shape_domain(model_dir, shape)
+    update_card(model_dir, domain_shape=shape)
     print(f"calibrated on {len(items)} clouds: multipliers {[round(k, 3) for k in block['multiplier']]}; "
           f"shape domain: mean curvature {shape['lo']:.4f} to {shape['hi']:.4f} /mm")
 

@@ -10,14 +10,12 @@ OUT_OF_DOMAIN; U is not widened there (nothing says by how much), the flag says 
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterable
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["SHAPE_QUANTILE", "fit_shape_domain", "shape_domain_of_scans", "write_shape_domain"]
+__all__ = ["SHAPE_QUANTILE", "fit_shape_domain", "shape_domain_of_scans"]
 
 SHAPE_QUANTILE = 0.001  # as the multivariate domain: 0.1 % of the calibration points fall outside on each side
 
@@ -46,11 +44,3 @@ def shape_domain_of_scans(scans: Iterable[Any], scanner: Any = None, quantile: f
     from ..preprocess.curvature import mean_curvature
 
     return fit_shape_domain((mean_curvature(prepare_scan(s, scanner=scanner)) for s in scans), quantile)
-
-
-def write_shape_domain(model_dir: str | Path, block: dict[str, Any]) -> None:
-    """Write ``block`` as the card's ``domain_shape`` (the card's other entries unchanged)."""
-    p = Path(model_dir) / "card.json"
-    card = json.loads(p.read_text())
-    card["domain_shape"] = block
-    p.write_text(json.dumps(card, indent=1, sort_keys=True))

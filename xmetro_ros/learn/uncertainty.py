@@ -21,13 +21,12 @@ Method (docs/learning.md, "Uncertainty"):
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..inference import AXES, ModelSet
+from ..inference import AXES, ModelSet, update_card
 
 __all__ = ["DOMAIN_QUANTILE", "SIGMA_FLOOR_MM", "calibrate", "conformal_multiplier", "cross_conformal_by_cloud",
            "fit_domain", "interval_metrics", "predict_clouds"]
@@ -160,10 +159,7 @@ def calibrate(model_dir: str | Path, X: np.ndarray, y: np.ndarray, cloud_id: np.
         "achieved_coverage_calibration": dict(zip(AXES, achieved, strict=True)),
     }
     if write:
-        p = Path(model_dir) / "card.json"
-        card = json.loads(p.read_text())
-        card["uncertainty"] = block
-        p.write_text(json.dumps(card, indent=1, sort_keys=True))
+        update_card(model_dir, uncertainty=block)
     return block
 
 

@@ -111,6 +111,43 @@ def _knn_normals_numpy(
     return normal.astype(np.float32), quality
 
 
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _smallest_eigvec_one(a00: float, a01: float, a02: float, a11: float, a12: float, a22: float
+                         ) -> tuple[float, float, float, float, float, float, float]:
+    """:func:`_smallest_eigvec_sym3` for one matrix, the same formulas (the compiled path's copy of the numpy
+    reference): (un-normalised eigenvector v0, v1, v2, its norm, λ0, λ1, λ2 ascending)."""
+    scale = a00 + a11 + a22
+    sc = scale if scale > 0 else 1.0
+    a00, a01, a02, a11, a12, a22 = a00 / sc, a01 / sc, a02 / sc, a11 / sc, a12 / sc, a22 / sc
+    qq = (a00 + a11 + a22) / 3
+    b00, b11, b22 = a00 - qq, a11 - qq, a22 - qq
+    p2 = (b00 * b00 + b11 * b11 + b22 * b22 + 2 * (a01 * a01 + a02 * a02 + a12 * a12)) / 6
+    p = np.sqrt(p2)
+    det = b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02)
+    rr = det / (2 * p * p2) if p > 0 else 0.0
+    rr = min(1.0, max(-1.0, rr))
+    phi = np.arccos(rr) / 3
+    l2 = qq + 2 * p * np.cos(phi)
+    l0 = qq + 2 * p * np.cos(phi + 2 * np.pi / 3)
+    l1 = 3 * qq - l2 - l0
+    x0, x1, x2 = a00 - l0, a01, a02
+    y0, y1, y2 = a01, a11 - l0, a12
+    z0, z1, z2 = a02, a12, a22 - l0
+    c00, c01, c02 = x1 * y2 - x2 * y1, x2 * y0 - x0 * y2, x0 * y1 - x1 * y0
+    c10, c11, c12 = x1 * z2 - x2 * z1, x2 * z0 - x0 * z2, x0 * z1 - x1 * z0
+    c20, c21, c22 = y1 * z2 - y2 * z1, y2 * z0 - y0 * z2, y0 * z1 - y1 * z0
+    n0 = c00 * c00 + c01 * c01 + c02 * c02
+    n1 = c10 * c10 + c11 * c11 + c12 * c12
+    n2 = c20 * c20 + c21 * c21 + c22 * c22
+    if n0 >= n1 and n0 >= n2:
+        v0, v1, v2, nn = c00, c01, c02, n0
+    elif n1 >= n2:
+        v0, v1, v2, nn = c10, c11, c12, n1
+    else:
+        v0, v1, v2, nn = c20, c21, c22, n2
+    return v0, v1, v2, np.sqrt(nn), l0 * sc, l1 * sc, l2 * sc
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _knn_normals_kernel(c: np.ndarray, rows: np.ndarray, dist: np.ndarray, idx: np.ndarray, allowed: np.ndarray,
                         radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
@@ -148,42 +185,11 @@ def _knn_normals_kernel(c: np.ndarray, rows: np.ndarray, dist: np.ndarray, idx: 
         m0, m1, m2 = s0 * inv, s1 * inv, s2 * inv
         a00, a01, a02 = s00 * inv - m0 * m0, s01 * inv - m0 * m1, s02 * inv - m0 * m2
         a11, a12, a22 = s11 * inv - m1 * m1, s12 * inv - m1 * m2, s22 * inv - m2 * m2
-        # _smallest_eigvec_sym3, one matrix
-        scale = a00 + a11 + a22
-        sc = scale if scale > 0 else 1.0
-        a00, a01, a02, a11, a12, a22 = a00 / sc, a01 / sc, a02 / sc, a11 / sc, a12 / sc, a22 / sc
-        qq = (a00 + a11 + a22) / 3
-        b00, b11, b22 = a00 - qq, a11 - qq, a22 - qq
-        p2 = (b00 * b00 + b11 * b11 + b22 * b22 + 2 * (a01 * a01 + a02 * a02 + a12 * a12)) / 6
-        p = np.sqrt(p2)
-        det = b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02)
-        rr = det / (2 * p * p2) if p > 0 else 0.0
-        rr = min(1.0, max(-1.0, rr))
-        phi = np.arccos(rr) / 3
-        l2 = qq + 2 * p * np.cos(phi)
-        l0 = qq + 2 * p * np.cos(phi + 2 * np.pi / 3)
-        l1 = 3 * qq - l2 - l0
-        x0, x1, x2 = a00 - l0, a01, a02
-        y0, y1, y2 = a01, a11 - l0, a12
-        z0, z1, z2 = a02, a12, a22 - l0
-        c00, c01, c02 = x1 * y2 - x2 * y1, x2 * y0 - x0 * y2, x0 * y1 - x1 * y0
-        c10, c11, c12 = x1 * z2 - x2 * z1, x2 * z0 - x0 * z2, x0 * z1 - x1 * z0
-        c20, c21, c22 = y1 * z2 - y2 * z1, y2 * z0 - y0 * z2, y0 * z1 - y1 * z0
-        n0 = c00 * c00 + c01 * c01 + c02 * c02
-        n1 = c10 * c10 + c11 * c11 + c12 * c12
-        n2 = c20 * c20 + c21 * c21 + c22 * c22
-        if n0 >= n1 and n0 >= n2:
-            v0, v1, v2, nn = c00, c01, c02, n0
-        elif n1 >= n2:
-            v0, v1, v2, nn = c10, c11, c12, n1
-        else:
-            v0, v1, v2, nn = c20, c21, c22, n2
-        nn = np.sqrt(nn)
-        l0s, l1s, l2s = l0 * sc, l1 * sc, l2 * sc
-        if not (nn > 1e-30 and l1s > 1e-12 * max(l2s, 1e-300)):
+        v0, v1, v2, nn, l0, l1, l2 = _smallest_eigvec_one(a00, a01, a02, a11, a12, a22)
+        if not (nn > 1e-30 and l1 > 1e-12 * max(l2, 1e-300)):
             continue
         normals[r, 0], normals[r, 1], normals[r, 2] = v0 / nn, v1 / nn, v2 / nn
-        quality[r] = min(1.0, max(0.0, 1.0 - max(l0s, 0.0) / l1s))
+        quality[r] = min(1.0, max(0.0, 1.0 - max(l0, 0.0) / l1))
     return normals, quality
 
 

@@ -299,7 +299,7 @@ class XmetroCore:
 
         try:
             pose = pose7_to_matrix_mm(self.values["cad_pose"])
-            dev = cad_deviation(self.cad, m_to_mm(points_m.astype(np.float64)), res.deviations, res.uncertainty,
+            dev = cad_deviation(self.cad, m_to_mm(points_m), res.deviations, res.uncertainty,
                                 flags=res.flags, pose=pose, register=bool(self.values["cad_register"]))
             cloud = cad_cloud(msg.header, points_m[dev.index], dev.index.astype(np.uint32), dev.before, dev.after,
                               dev.u_normal, np.asarray(dev.flags, np.uint16))
@@ -394,7 +394,6 @@ class XmetroCore:
         except Exception as e:
             return failed_response(base, f"recommendation failed: {type(e).__name__}: {e}")
         return recommend_response(rec, judged.frame_id, judged.stamp_ns, self.scanner.id, tol_mm, self.model_id)
-
 
     def _occluder(self, judged: JudgedScan) -> Any:
         """The CAD part placed as in the judged scan's CAD map (its self-occlusion for the recommender), or None."""

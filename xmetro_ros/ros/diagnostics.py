@@ -57,7 +57,7 @@ class DiagnosticsState:
     """
 
     def __init__(self, node_name: str, hardware_id: str, model_id: str, degraded: str = "",
-                 scan_timeout: float = 5.0) -> None:
+                 scan_timeout: float = 5.0, cad_mesh: str = "", cad_error: str = "") -> None:
         self.name = status_name(node_name)
         self.hardware_id = hardware_id
         self.model_id = model_id
@@ -81,8 +81,10 @@ class DiagnosticsState:
         self.reference_state: int | None = None  # ReferenceCheck.STATE_* of the last reference scan
         self.reference_message = ""
         self.reference_scans = 0
-        self.cad_error = ""                 # the configured CAD part could not be loaded (start-up, ERROR)
-        self.cad_state = "off"              # the last scan's CAD comparison (its log line), or why it failed
+        self.cad_error = cad_error          # the configured CAD part (cad_mesh) could not be loaded: ERROR
+        # the last scan's CAD comparison (its log line), or why it failed
+        self.cad_state = ("off" if not cad_mesh else "failed to load" if cad_error
+                          else f"{cad_mesh}: no scan compared yet")
         self.cad_failed = False             # the last scan's CAD comparison failed (WARN until one succeeds)
         self._start = time.monotonic()
         self._last_scan: float | None = None

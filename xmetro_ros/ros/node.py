@@ -133,10 +133,8 @@ class XmetroWiring(ScanWorker, ServiceHandlers):
         if core.cad_error:
             self.get_logger().error(f"{core.cad_error}; scans are judged without the CAD comparison")
         self.diag = DiagnosticsState(self.get_name(), core.scanner.id, core.model_id, core.degraded,
-                                     scan_timeout=float(values["scan_timeout"]))
-        self.diag.cad_error = core.cad_error
-        self.diag.cad_state = ("off" if not values["cad_mesh"] else "failed to load" if core.cad_error
-                               else f"{values['cad_mesh']}: no scan compared yet")
+                                     scan_timeout=float(values["scan_timeout"]), cad_mesh=str(values["cad_mesh"]),
+                                     cad_error=core.cad_error)
         self._qmax = int(values["queue_depth"])
         self.core = core
         return core

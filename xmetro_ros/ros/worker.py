@@ -3,9 +3,8 @@
 worker past ``max_processing_time``.
 
 A mixin of the node's wiring (:class:`xmetro_ros.ros.node.XmetroWiring`): it uses the node's ``core``, ``diag``,
-publishers (``pub_dev``, ``pub_corr``, ``pub_quality``, ``pub_diag``, ``pub_reference``,
-``pub_cad``) and logger. Processing in
-its own thread keeps the services and parameter changes responsive whatever the executor.
+publishers (``pub_dev``, ``pub_corr``, ``pub_quality``, ``pub_diag``, ``pub_reference``, ``pub_cad``) and logger.
+Processing in its own thread keeps the services and parameter changes responsive whatever the executor.
 """
 
 from __future__ import annotations
