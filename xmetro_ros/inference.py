@@ -352,9 +352,8 @@ class ModelSet:
 
     def predict_batch_with_uncertainty(self, Xq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(Q, P, F) → (errors (Q, P, 3), U (Q, P, 3)) mm: each version as :meth:`predict_with_uncertainty` would give
-        it, errors and U from ONE ONNX run per chunk of sets (the recommender's candidates: half the runs of
-        ``predict_batch`` then ``predict_batch(output="uncertainty")``). Rows must be finite. Raises ModelLoadError
-        without a calibration."""
+        it, errors and U from ONE ONNX run per chunk of sets (the recommender's candidates; ``predict_batch``'s U).
+        Rows must be finite. Raises ModelLoadError without a calibration."""
         if not self.calibrated:
             raise ModelLoadError(f"model set {self.id!r} has no uncertainty calibration (card 'uncertainty')")
         Xq = np.asarray(Xq, dtype=np.float32)
