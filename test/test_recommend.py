@@ -119,3 +119,25 @@ def test_recommend_progress_and_cancel(judged):
     with pytest.raises(RecommendCancelled, match="after 3 of 27"):
         recommend(model, res.context, rows, res.features, scan.pose, scanner, scan.settings, **kw,
                   cancelled=cancel_after_three)
+
+
+def test_rank_by_predicted_distribution(judged):
+    """rank_by="predicted" orders the same candidates by their predicted p95 of |d + r|; the keep-current rule
+    compares that figure; an unknown ranking is refused."""
+    model, scanner, scan, res = judged
+    pts = np.asarray(res.prepared.points)
+    rows = np.flatnonzero(np.linalg.norm(pts - [0, 0, 17.5], axis=1) < 8.0)
+    kw = dict(max_points=150, max_tilt=0.25, tilt_steps=3, max_turn=-1, min_coverage=0.95)
+    a = recommend(model, res.context, rows, res.features, scan.pose, scanner, scan.settings, **kw)
+    b = recommend(model, res.context, rows, res.features, scan.pose, scanner, scan.settings, rank_by="predicted",
+                  **kw)
+    assert a.uses_uncertainty and "|d| + |U|" in a.note and "|d + r|" in b.note
+    key = [(c.predicted_p95_mm, c.mean_mm) for c in b.ranked]
+    assert key == sorted(key) and len(b.ranked) == len(a.ranked)
+    assert {(c.settings, c.rotation.tobytes()) for c in a.ranked} == {(c.settings, c.rotation.tobytes())
+                                                                      for c in b.ranked}
+    assert b.top is b.ranked[0]
+    gain = b.before.predicted_p95_mm - b.top.predicted_p95_mm
+    assert b.kept_current == (not gain > np.hypot(b.before.score_unc_mm, b.top.score_unc_mm))
+    with pytest.raises(ValueError, match="rank_by"):
+        recommend(model, res.context, rows, res.features, scan.pose, scanner, scan.settings, rank_by="mean", **kw)

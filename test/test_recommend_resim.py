@@ -360,3 +360,37 @@ def test_batched_uncertainty_fast_path(scanner):
     assert [(c.settings, c.score_mm, c.predicted_p95_mm) for c in a.ranked] == [
         (c.settings, c.score_mm, c.predicted_p95_mm) for c in b.ranked]
     assert a.best.settings == b.best.settings and a.kept_current == b.kept_current
+
+
+def test_verify_best_is_measured_on_the_evaluation_draws(scanner):
+    """The winner's curse: the lowest of many one-draw p95s is biased low. With 12 candidates that are all the same
+    set-up as the recommendation, the old "minimum of the candidates' draws" reported the recommendation as worse
+    than itself; verify's finalists are re-measured on the evaluation seeds, so after / best is exactly 1."""
+    from types import SimpleNamespace
+
+    judged = simulate_scan(Sphere(17.5), ScanSettings(10.0, 4.0, 0.5), scanner=scanner, seed=21)
+    truth = GroundTruth.from_scan(judged, scanner)
+    region = Region(centre=np.array([0.0, 0.0, 17.5]), radius_mm=3.0)
+    same = [SimpleNamespace(settings=judged.settings, pose=judged.pose, rotation=None, predicted_p95_mm=None,
+                            score_mm=0.01) for _ in range(12)]
+    rec = SimpleNamespace(before=same[0], best=same[0], ranked=same)
+    ver = verify(truth, region, rec, n_seeds=2, all_candidates=True, candidate_seeds=1, finalists=3)
+    one_draw = np.array([c.p95_mm for c in ver.candidates])
+    assert np.ptp(one_draw) == 0.0  # one selection seed for all: identical set-ups give one value ...
+    assert ver.best is not None and ver.after_over_best == 1.0
+    # ... and those selection draws are not the evaluation draws
+    assert one_draw[0] != ver.after.p95_mm and ver.before.p95_mm == ver.after.p95_mm
+    sel = resimulate(truth, region, judged.settings, judged.pose, seeds=resim_seeds(truth, 3)[2:])
+    assert sel.p95_mm == one_draw[0]
+    # distinct set-ups: the best is among the finalists' evaluation-seed measurements or the recommendation itself
+    other = [SimpleNamespace(settings=ScanSettings(lat, d, e), pose=judged.pose, rotation=None, predicted_p95_mm=None,
+                             score_mm=0.01) for lat in (6.0, 15.0) for d in (3.0, 5.0) for e in (0.1, 2.0)]
+    rec2 = SimpleNamespace(before=same[0], best=other[0], ranked=other)
+    ver2 = verify(truth, region, rec2, n_seeds=2, all_candidates=True, candidate_seeds=1, finalists=2)
+    assert ver2.best is not None and ver2.best.n_seeds == 2 and ver2.after_over_best >= 1.0
+    finals = np.argsort([c.p95_mm for c in ver2.candidates], kind="stable")[:2]
+    evals = [resimulate(truth, region, other[k].settings, other[k].pose, seeds=resim_seeds(truth, 2)).p95_mm
+             for k in finals]
+    assert ver2.best.p95_mm == min([ver2.after.p95_mm, *evals])
+    with pytest.raises(ValueError, match="finalists"):
+        verify(truth, region, rec2, all_candidates=True, finalists=0)

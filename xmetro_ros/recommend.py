@@ -185,6 +185,7 @@ def p95_interval_halfwidth(values: np.ndarray) -> np.ndarray:
     return (v[..., hi] - v[..., lo]) / 2.0
 
 
+RANK_BY = ("score", "predicted")  # ranking figures (recommend's rank_by)
 N_DRAWS = 4  # draws per point of the predicted error distribution (the predicted p95 of the actual error)
 
 
@@ -256,7 +257,7 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
               min_coverage: float = 0.95, batch_rows: int = 400_000,
               max_seconds: float | None = None, uncertainty: UncertaintyFn | None = None,
               in_domain: Callable[[np.ndarray], np.ndarray] | bool | None = None, max_out_of_domain: float = 0.05,
-              keep_current: bool = True,
+              keep_current: bool = True, rank_by: str = "score",
               progress: Callable[[RecommendProgress], None] | None = None,
               cancelled: Callable[[], bool] | None = None, occluder: Any = None) -> Recommendation:
     """Search settings × orientations for the region ``rows`` of a judged scan (see the module docstring).
@@ -280,6 +281,10 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
         in_domain: ``X (M, F) -> (M,) bool``; None → the model set's own measure if any; False → no check.
         max_out_of_domain: candidates with a larger share of covered points outside the domain are discarded.
         keep_current: recommend the current set-up unless the best predicted gain exceeds its uncertainty.
+        rank_by: ``"score"`` (default): the p95 of |d| + |U| (``Candidate.score_mm``); ``"predicted"``: the p95 of
+            the predicted distribution of |d + r| (``Candidate.predicted_p95_mm``; the score when the model gives
+            no U). The keep-current rule then compares that figure, with the score's confidence interval as its
+            uncertainty (an approximation: the draws are 4 per point, not independent points).
         progress: called after each orientation with a :class:`RecommendProgress` (the ROS action's feedback).
         cancelled: polled before each orientation; true → :class:`RecommendCancelled` is raised.
         occluder: the part (an artifact in the scan frame, e.g. its CAD mesh): a point it shadows from the laser
@@ -291,6 +296,13 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
         RecommendCancelled: ``cancelled()`` became true.
     """
     from .features import REGISTRY, compute_features
+
+    if rank_by not in RANK_BY:
+        raise ValueError(f"rank_by must be one of {', '.join(RANK_BY)}, got {rank_by!r}")
+
+    def key(c: Candidate) -> tuple[float, float]:
+        v = c.predicted_p95_mm if rank_by == "predicted" and c.predicted_p95_mm is not None else c.score_mm
+        return (v, c.mean_mm)
 
     rows = np.asarray(rows, dtype=np.int64)
     rows = rows[np.isfinite(before_features[rows]).all(axis=1)]
@@ -394,14 +406,14 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
             ranked.append(Candidate(s, r, pose_o, float(means[k]), float(p95s[k]), float(cov.mean()),
                                     float(tots[k]), float(uncs[k]), float(u95s[k]), float(ood[k]), float(e95s[k])))
         if ranked:
-            lead = min(ranked, key=lambda c: (c.score_mm, c.mean_mm))
+            lead = min(ranked, key=key)
             best_p95 = lead.reported_p95_mm
     if not ranked:
         if n_ood:
             raise ValueError(f"all {n_ood} candidates keeping the coverage lie outside the model's domain "
                              f"(> {max_out_of_domain:.0%} of their points)")
         raise ValueError(f"no orientation keeps the coverage >= {need:.3f} of the region")
-    ranked.sort(key=lambda c: (c.score_mm, c.mean_mm))
+    ranked.sort(key=key)
     note = f"{len(orients)} orientations ({n_kept} kept) x {len(cands)} settings on {m} points"
     if n_eval < len(orients):
         note += (f"; time budget of {max_seconds:g} s spent: search stopped after {n_eval} of {len(orients)} "
@@ -412,7 +424,8 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
     if not uses_u:
         note += "; ranked by the predicted systematic error only: the model gives no uncertainty, noise is ignored"
     else:
-        note += "; ranked by the p95 of |d| + |U| (systematic and random parts)"
+        note += ("; ranked by the p95 of |d| + |U| (systematic and random parts)" if rank_by == "score" else
+                 "; ranked by the predicted p95 of |d + r| (systematic and random parts)")
     if dom_fn is None:
         note += "; no domain check"
     elif n_ood:
@@ -421,7 +434,7 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
     top = ranked[0]
     best, kept = top, False
     if keep_current:
-        gain = before.score_mm - top.score_mm
+        gain = key(before)[0] - key(top)[0]
         gain_unc = float(np.hypot(before.score_unc_mm, top.score_unc_mm))
         if not gain > gain_unc:
             # The current set-up, evaluated like the candidates when it is one of them (same cloud prediction).
