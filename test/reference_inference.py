@@ -1,7 +1,8 @@
 """The set inference of ``ModelSet`` as it was before issue 13 (gather ``X[idx]`` of the (M, F) rows into set
 order, a float64 scatter back, error and σ̂ from the same ONNX runs, chunks of 128 sets), kept verbatim as the
 reference the contiguous implementation must reproduce bit for bit (test/test_inference_sets.py) and as the
-"before" of bench/bench_uncertainty.py. Functions of a loaded ``ModelSet`` (its sessions and card)."""
+"before" of bench/bench_uncertainty.py. Functions of a loaded ``ModelSet`` (its sessions and card). One change
+since: the σ̂ cap (``ModelSet.log_sigma_max``, card ``uncertainty.sigma_max_mm``), applied to log σ̂ as there."""
 
 from __future__ import annotations
 
@@ -69,6 +70,8 @@ def predict_sets_sigma(ms, sets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
                 ss[i : i + SET_CHUNK] = res[1]
         out[:, :, list(m.axes)] = ys
         if m.sigma:
+            if ms.log_sigma_max is not None:  # the σ̂ cap (added after this reference was written; card sigma_max_mm)
+                ss = np.minimum(ss, ms.log_sigma_max[list(m.axes)])
             sig[:, :, list(m.axes)] = np.exp(ss)
     return out, sig
 
