@@ -37,6 +37,7 @@ def test_verify_recommend_cli(quick_report):
     # the actual best is measured on the same evaluation draws as the recommendation, which is among the finalists
     assert 0 < r["n_candidates"] <= 27 * 9
     assert a["best"] <= a["after"]
+    assert np.linalg.norm(r["best_quaternion_xyzw"]) == pytest.approx(1.0, abs=1e-5)
     assert r["after_over_best"] == pytest.approx(a["after"] / a["best"])
     assert 0.0 <= r["after_percentile"] <= 1.0 and -1.0 <= r["rank_correlation"] <= 1.0
     # the shipped model predicts no uncertainty: the note says the ranking ignores noise

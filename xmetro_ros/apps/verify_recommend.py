@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from ..artifacts import Artifact, Cylinder, Sphere
+from ..geometry import matrix_to_quat
 from ..scanner import ScanSettings
 
 # (artifact, judged settings, direction of the region centre from the artifact's centre / axis)
@@ -118,6 +119,8 @@ def verify_regions(model_dir: Path | None = None, radius_mm: float = 4.0, n_regi
             "actual_after_parts_um": {"systematic_p95": ver.after.sys_p95_mm * um,
                                       "random_p95": ver.after.rand_p95_mm * um},
             "best_settings": s(ver.best.settings),
+            "best_quaternion_xyzw": (None if ver.best.rotation is None
+                                     else matrix_to_quat(ver.best.rotation).round(6).tolist()),
             "after_over_best": ver.after_over_best, "after_percentile": ver.after_percentile,
             "rank_correlation": ver.rank_correlation(), "n_candidates": len(ver.candidates),
             "coverage_after": ver.after.coverage, "seconds": round(time.monotonic() - t0, 1),
