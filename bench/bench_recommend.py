@@ -1,14 +1,16 @@
 """Rescan recommendation search speed on a 20,000-point region (SEARCH): 27 settings x 27 orientations.
 
-A 55 mm sphere is simulated at the densest study settings and judged with the default model; the region is the
-~20,000 processed points nearest the top. Measured side by side in one run (noisy shared machine, load average
-recorded), best of 3 each:
+A 55 mm sphere is simulated at the densest study settings and judged as the node judges it (the shipped primary
+model, or the pose model where its domain holds the scan); the search runs with the shipped pose model, as the
+node's does; the region is the ~20,000 processed points nearest the top. Measured side by side in one run (noisy
+shared machine, load average recorded), best of 3 each:
 - ``default``: ``recommend`` with its defaults (the region subsampled to 2,000 points, 27 x 27 candidates, the
   model's own domain check, U from the model set when it has one);
 - ``with_u``: the same with a cheap synthetic uncertainty callable (U ∝ 1 / sqrt(exposure)), to show the cost of
   the total-error score and of the predicted error distribution;
 - ``full_region``: no subsample (20,000 points), with a 3 s time budget: says whether (and where) it was cut short;
-- a profile of ``default``: the time in geometry (``with_pose``), features, the model (``predict_batch``), scores
+- a profile of ``default``: the time in geometry (``with_pose``), features, the model
+  (``predict_batch_with_uncertainty``: d and U of all settings versions of an orientation in one ONNX run), scores
   and the domain check.
 Writes bench/results/recommend.json. Target: ``default`` and ``with_u`` ≤ 3 s.
 """
@@ -37,10 +39,15 @@ N_REGION = 20_000
 
 
 def main() -> None:
+    from xmetro_ros.resources import pose_model_dir
+
     scanner = ScannerModel.load()
-    model = ModelSet.load(os.environ.get("XMETRO_TEST_MODEL_DIR") or None)
+    custom = os.environ.get("XMETRO_TEST_MODEL_DIR")
+    judge = ModelSet.load(custom or None)
+    # as the node: the search runs with the shipped pose model next to the shipped primary (docs/node.md)
+    model = judge if custom else ModelSet.load(pose_model_dir())
     scan = simulate_scan(Sphere(27.5), ScanSettings(15.0, 5.0, 0.5), scanner=scanner, seed=21)
-    res = ScanHandler(model, scanner, HandlerParams()).process(scan)
+    res = ScanHandler(judge, scanner, HandlerParams(), pose_model=None if custom else model).process(scan)
     pts = np.asarray(res.prepared.points)
     rows = np.argsort(np.linalg.norm(pts - [0, 0, 27.5], axis=1))[:N_REGION]
     radius = float(np.linalg.norm(pts[rows[-1]] - [0, 0, 27.5]))
@@ -74,8 +81,9 @@ def main() -> None:
     recommend(model, res.context, rows, res.features, scan.pose, scanner, scan.settings)
     prof.disable()
     st = pstats.Stats(prof)
-    parts = {"with_pose": "with_pose", "compute_features": "compute_features", "predict_batch": "predict_batch",
-             "scores": "_scores", "domain": "out_of_domain", "coverage": "coverage_mask"}
+    parts = {"with_pose": "with_pose", "compute_features": "compute_features",
+             "predict_batch_with_uncertainty": "predict_batch_with_uncertainty", "scores": "_scores",
+             "domain": "ood_share", "coverage": "coverage_mask"}
     total = max(v[3] for v in st.stats.values())
     out["profile_default_s"] = {"total": round(total, 3)}
     for label, fn in parts.items():

@@ -198,6 +198,62 @@ def test_out_of_domain_far_pose_not_training_pose(rig):
     assert out["tilted"] >= 0.9, out
 
 
+def test_scan_at_a_searched_orientation_is_judged_by_the_pose_model(rig):
+    """A rescan at one of the recommender's orientations (15° tilt, 90° turn about the region) lies outside the
+    primary model's domain and inside the shipped pose model's: ScanQuality names the pose model, the published
+    deviations and U are its own judgement of the scan (ScanHandler with that model alone), ~/explain explains them
+    with it, and ~/recommend_settings searches with it. A looking-down scan stays with the primary."""
+    from xmetro_ros.inference import ModelSet
+    from xmetro_ros.recommend import rotation_xyz
+    from xmetro_ros.resources import pose_model_dir
+    from xmetro_ros.scan_handler import HandlerParams, ScanHandler
+    from xmetro_ros.scanner import ScannerModel
+    from xmetro_ros.srv import RecommendSettings
+
+    if os.environ.get("XMETRO_TEST_MODEL_DIR"):
+        pytest.skip("a model_dir of its own loads no shipped pose model")
+    node, client, tester = rig
+    pose_model = node.core.pose_model
+    assert pose_model is not None and pose_model.id == ModelSet.load(pose_model_dir()).id != node.core.model_id
+    q0, *_ = _judge(node, client, _scan(160 * S, seed=4), 160 * S)
+    assert q0.model_id == node.core.model_id
+    rescan = _scan(161 * S, seed=4, pose=HeadPose.looking_down(90.0).rotated(rotation_xyz(0.2618, 0.0, 1.5708),
+                                                                              pivot=np.array([0.0, 0.0, RADIUS])))
+    q, _dev, _corr, a = _judge(node, client, rescan, 161 * S)
+    assert q.model_id == pose_model.id
+    fin = np.isfinite(a["dx"])
+    assert ((a["flags"].astype(np.uint16)[fin] & fl.FLAG_OUT_OF_DOMAIN) > 0).mean() < 0.05
+    from xmetro_ros.ros.convert import cloud_to_scan
+
+    entry = node.core.settings_for(161 * S)  # the scan as the node decoded it
+    decoded = cloud_to_scan(cloud_of(rescan), entry.settings, entry.pose, node.core.scanner.id)
+    own = ScanHandler(pose_model, ScannerModel.load(), node.core.handler.params).process(decoded)
+    np.testing.assert_allclose(np.column_stack([a["dx"], a["dy"], a["dz"]])[fin],
+                               own.deviations[fin] * 1e-3, rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose(np.column_stack([a["ux"], a["uy"], a["uz"]])[fin],
+                               own.uncertainty[fin] * 1e-3, rtol=1e-5, atol=1e-9)
+    primary_only = ScanHandler(node.core.model, ScannerModel.load(), HandlerParams()).process(rescan)
+    f_primary = primary_only.flags[np.isfinite(primary_only.deviations[:, 0])]
+    assert ((f_primary & fl.FLAG_OUT_OF_DOMAIN) > 0).mean() > 0.05  # why it was routed
+    explain = tester.create_client(Explain, "/xmetro_node/explain")
+    req = Explain.Request()
+    req.scan_stamp.sec = 161
+    req.indices = [int(i) for i in np.flatnonzero(fin)[::997][:20]]
+    r = call_service(explain, req, timeout=TIMEOUT)
+    assert r.success, r.message
+    assert r.model_id == pose_model.id
+    d = np.column_stack([a["dx"], a["dy"], a["dz"]]).astype(np.float64)[np.array(req.indices)]
+    np.testing.assert_allclose(np.array(r.predictions).reshape(len(req.indices), 3), d, rtol=0, atol=1e-9)
+    rec = tester.create_client(RecommendSettings, "/xmetro_node/recommend_settings")
+    rreq = RecommendSettings.Request()
+    rreq.scan_stamp.sec = 160
+    rreq.region_center.z = RADIUS * 1e-3
+    rreq.region_radius = 0.004
+    rr = call_service(rec, rreq, timeout=120.0)
+    assert rr.success, rr.message
+    assert rr.model_id == pose_model.id
+
+
 def test_explain_uncertainty_additive_and_equal_to_published_U(rig):
     node, client, tester = rig
     explain = tester.create_client(Explain, "/xmetro_node/explain")

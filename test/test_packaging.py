@@ -48,13 +48,15 @@ def test_wheel_carries_interfaces_libraries_config_and_model(tmp_path: Path):
     for must in ("xmetro_ros/msg/_scan_quality.py", "xmetro_ros/msg/_reference_check.py",
                  "xmetro_ros/msg/_scanner_settings.py", "xmetro_ros/srv/_explain.py",
                  "xmetro_ros/srv/_recommend_settings.py", "xmetro_ros/models/default/card.json",
-                 "xmetro_ros/config/xmetro.yaml", "xmetro_ros/config/fastdds_localhost.xml",
+                 "xmetro_ros/models/posed/card.json", "xmetro_ros/config/xmetro.yaml",
+                 "xmetro_ros/config/fastdds_localhost.xml",
                  f"{data}/data/share/ament_index/resource_index/packages/xmetro_ros",
                  f"{data}/data/share/xmetro_ros/msg/ScanQuality.msg",
                  "xmetro_ros/action/_recommend_settings.py", "xmetro_ros/ros/lifecycle_node.py",
                  f"{data}/data/share/xmetro_ros/action/RecommendSettings.action"):
         assert must in names, must
-    assert any(n.startswith("xmetro_ros/models/default/") and n.endswith(".onnx") for n in names)
+    for m in ("default", "posed"):
+        assert any(n.startswith(f"xmetro_ros/models/{m}/") and n.endswith(".onnx") for n in names), m
     # Runtime install lean: PyTorch and the other training-only packages only under the [train] extra.
     meta = next(n for n in names if n.endswith(".dist-info/METADATA"))
     requires = [ln.split(":", 1)[1].strip() for ln in zipfile.ZipFile(wheel).read(meta).decode().splitlines()
@@ -142,7 +144,7 @@ def test_colcon_install_finds_config_and_model_and_starts_renamed_node(tmp_path:
     share = prefix / "share" / "xmetro_ros"
     site = prefix / "lib" / f"python{sys.version_info.major}.{sys.version_info.minor}" / "site-packages"
     for rel in ("config/xmetro.yaml", "config/scanners/default.yaml", "config/fastdds_localhost.xml",
-                "models/default/card.json", "launch/xmetro.launch.py", "package.xml"):
+                "models/default/card.json", "models/posed/card.json", "launch/xmetro.launch.py", "package.xml"):
         assert (share / rel).is_file(), rel
     assert (prefix / "share" / "ament_index" / "resource_index" / "packages" / "xmetro_ros").is_file()
     assert (prefix / "lib" / "xmetro_ros" / "xmetro_node").is_file()

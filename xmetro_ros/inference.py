@@ -464,6 +464,17 @@ class ModelSet:
         return UncertainPrediction(err, U, sig, dist, self.out_of_domain_mv(X, dist))
 
     @property
+    def training_rotations(self) -> list[np.ndarray] | None:
+        """Head orientations (3×3 rotations, head frame relative to looking down) of the simulated campaign the
+        model set was trained on: the card's campaign ``poses``, looking down only when it names none; None when the
+        card does not say (e.g. trained on recorded bags)."""
+        dm = self.card.get("data_manifest") or {}
+        poses = (dm.get("campaign_args") or {}).get("poses")
+        if poses:
+            return [np.asarray(r, np.float64).reshape(3, 3) for r in poses]
+        return [np.eye(3)] if dm.get("source") == "simulated" else None
+
+    @property
     def shape_domain(self) -> tuple[float, float, float] | None:
         """(lo, hi, radius_mm) of the mean curvature (1/mm) the calibration clouds covered (card ``domain_shape``,
         :mod:`xmetro_ros.learn.shape_domain`), or None when the card has none (then no shape check)."""

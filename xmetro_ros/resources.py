@@ -18,7 +18,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-__all__ = ["PACKAGE", "ament_share_dir", "config_path", "default_model_dir", "package_dir", "repo_root"]
+__all__ = ["PACKAGE", "ament_share_dir", "config_path", "default_model_dir", "package_dir", "pose_model_dir",
+           "repo_root"]
 
 PACKAGE = "xmetro_ros"
 
@@ -62,14 +63,25 @@ def config_path(name: str) -> Path:
         + ("" if share is not None else f"; no {PACKAGE} in the ament index of AMENT_PREFIX_PATH") + ")")
 
 
+def _shipped_model_dir(name: str) -> Path:
+    here = package_dir() / "models" / name
+    if (here / "card.json").exists():
+        return here
+    share = ament_share_dir()
+    if share is not None and (share / "models" / name / "card.json").exists():
+        return share / "models" / name
+    return here
+
+
 def default_model_dir() -> Path:
     """Directory of the shipped default model set (ONNX + card): in the package (checkout, pip route), else
     ``share/xmetro_ros/models/default`` of the ament index (colcon route). When neither exists, the package path
     (the caller reports the model as missing there)."""
-    here = package_dir() / "models" / "default"
-    if (here / "card.json").exists():
-        return here
-    share = ament_share_dir()
-    if share is not None and (share / "models" / "default" / "card.json").exists():
-        return share / "models" / "default"
-    return here
+    return _shipped_model_dir("default")
+
+
+def pose_model_dir() -> Path:
+    """Directory of the shipped pose model set (trained at the rescan recommender's head orientations: it judges
+    scans taken there and the recommender searches with it; docs/node.md, "Two model sets"), found like
+    :func:`default_model_dir`."""
+    return _shipped_model_dir("posed")

@@ -1,7 +1,9 @@
 """The one processing path of a scan (ROS-free), shared by the live node and the offline ``xmetro predict``.
 
     scan (mm) → point cap → outlier removal + normals (``preprocess.prepare_scan``) → the model's features (names
-    from the model card, ``features.compute_features``, float32) → ONNX Runtime inference (x, y, z) and, with a
+    from the model card, ``features.compute_features``, float32) → the model set that judges them (the primary, or
+    a second "pose" model set when the primary's domain does not hold the scan and its own does:
+    :meth:`ScanHandler.route`) → ONNX Runtime inference (x, y, z) and, with a
     calibrated model set, the expanded uncertainty U (95 %) per axis in the same call (same PointNet sets:
     ``ModelSet.predict_with_uncertainty``) → flags and ISO 14253-1 decision classes (:mod:`xmetro_ros.flags`) →
     verdict → quality summary.
@@ -27,6 +29,7 @@ from .scanner import ScannerModel, SettingsError
 
 __all__ = [
     "NO_DECISION",
+    "ROUTE_MAX_OUT_OF_DOMAIN",
     "HandlerParams",
     "ScanError",
     "ScanHandler",
@@ -131,6 +134,7 @@ class ScanResult:
             there is no prediction.
         shape_out_of_domain: (M,) bool per row of ``prepared``: a surface shape (mean curvature) outside the model's
             calibration shapes (flagged OUT_OF_DOMAIN, U not widened); None when the card has no ``domain_shape``.
+        model_id: id of the model set that judged the scan (the primary, or the pose model: :meth:`ScanHandler.route`).
     """
 
     deviations: np.ndarray
@@ -146,6 +150,7 @@ class ScanResult:
     row_uncertainty: np.ndarray | None = None
     decisions: np.ndarray | None = None
     shape_out_of_domain: np.ndarray | None = None
+    model_id: str = ""
 
 
 #: ``ScanResult.decisions`` of a point without a prediction.
@@ -203,20 +208,73 @@ def cap_points(scan: Scan, max_points: int, overflow: str) -> tuple[Scan, np.nda
     return replace(scan, points=pts, fields=fields, expected_error=exp, noise_std=std, injected_outlier=inj), keep
 
 
+#: A scan is judged by the pose model only when more than this share of its points lies outside the primary model's
+#: multivariate domain (the recommender's ``max_out_of_domain``) and a smaller share outside the pose model's.
+ROUTE_MAX_OUT_OF_DOMAIN = 0.05
+#: Rows of a scan the routing decision looks at (evenly spaced): the shares, not the points, decide.
+ROUTE_ROWS = 2000
+#: The scan's head orientation must be closer, by this much (rad), to one the pose model was trained at than to
+#: any the primary was trained at (a looking-down scan of a part stays with the primary, out of domain or not).
+ROUTE_ANGLE_MARGIN = float(np.radians(1.0))
+
+
+def _nearest_angle(rotation: np.ndarray, rotations: list[np.ndarray]) -> float:
+    """Smallest rotation angle (rad) between ``rotation`` and any of ``rotations``."""
+    tr = np.array([np.trace(rotation.T @ r) for r in rotations])
+    return float(np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0)).min())
+
+
 class ScanHandler:
-    """Judge scans with one model set.
+    """Judge scans with a model set, or with the better-suited of two.
 
     Args:
-        model_set: an ``inference.ModelSet`` (feature names, domain, predict).
+        model_set: the primary ``inference.ModelSet`` (feature names, domain, predict).
         scanner: the scanner model (settings range, baseline).
         params: processing parameters; replace ``handler.params`` to change them live.
+        pose_model: optional second model set with the same features, trained at other head orientations (the
+            rescan recommender's): a scan goes to it when the primary's domain does not hold it and the pose
+            model's holds more of it (:meth:`route`).
     """
 
-    def __init__(self, model_set: Any, scanner: ScannerModel, params: HandlerParams | None = None) -> None:
+    def __init__(self, model_set: Any, scanner: ScannerModel, params: HandlerParams | None = None,
+                 pose_model: Any = None) -> None:
         self.model = model_set
+        self.pose_model = pose_model
         self.scanner = scanner
         self.params = params or HandlerParams()
         self.warm_up_s = warm_up()
+
+    def route(self, X: np.ndarray, rotation: np.ndarray | None = None) -> Any:
+        """The model set to judge feature rows X (M, F) of a scan taken with head ``rotation`` (3×3, scan frame)
+        with: the primary, unless (1) the head orientation is closer (by ``ROUTE_ANGLE_MARGIN``) to one the pose
+        model was trained at than to any the primary was (``ModelSet.training_rotations``; skipped when either card
+        does not say or ``rotation`` is None), (2) more than ``ROUTE_MAX_OUT_OF_DOMAIN`` of the rows lie outside the
+        primary's multivariate domain (threshold widened by ``domain_margin``, as the flags) and (3) a smaller share
+        outside the pose model's. Decided on at most ``ROUTE_ROWS`` evenly spaced rows (~0.1 ms); the judged scan's
+        flags and U are the chosen model's own."""
+        if self.pose_model is None or len(X) == 0:
+            return self.model
+        rp = getattr(self.model, "training_rotations", None)
+        rq = getattr(self.pose_model, "training_rotations", None)
+        if rotation is not None and rp is not None and rq is not None:
+            r = np.asarray(rotation, np.float64)
+            if _nearest_angle(r, rq) >= _nearest_angle(r, rp) - ROUTE_ANGLE_MARGIN:
+                return self.model
+        rows = X[np.unique(np.linspace(0, len(X) - 1, min(len(X), ROUTE_ROWS)).astype(np.int64))]
+        rows = rows[np.isfinite(rows).all(axis=1)]
+        if len(rows) == 0:
+            return self.model
+        limit = 1.0 + self.params.domain_margin
+
+        def share(m: Any) -> float:
+            with np.errstate(invalid="ignore"):
+                return float(np.mean(m.domain_distance(rows) > limit)) if m.card.get("domain_mv") else float(
+                    np.mean(m.out_of_domain(rows)))
+
+        primary = share(self.model)
+        if primary <= ROUTE_MAX_OUT_OF_DOMAIN:
+            return self.model
+        return self.pose_model if share(self.pose_model) < primary else self.model
 
 
     def preprocess_config(self) -> Any:
@@ -282,23 +340,24 @@ class ScanHandler:
         except MissingFieldError as e:
             raise ScanError("MISSING_INPUT_FIELD", str(e)) from e
         check_deadline(deadline, "inference")
+        model = self.route(X, scan.pose.rotation if scan.pose is not None else None)
         # Rows with a non-finite feature get NaN from the model (and are kept out of PointNet sets).
         # U comes from the same call as the errors: a PointNet point's prediction depends on its set.
         unc_note = ""
         mv_ood = None
-        if getattr(self.model, "calibrated", False):
-            up = self.model.predict_with_uncertainty(X)
+        if getattr(model, "calibrated", False):
+            up = model.predict_with_uncertainty(X)
             pred = np.asarray(up.errors, dtype=np.float64)
             U = np.asarray(up.U, dtype=np.float64)
-            if self.model.card.get("domain_mv"):
+            if model.card.get("domain_mv"):
                 # domain_margin widens the multivariate threshold as it widens each feature's range (U is widened
                 # from distance 1 on, whatever the margin)
                 with np.errstate(invalid="ignore"):
                     mv_ood = np.asarray(up.domain_distance) > 1.0 + p.domain_margin
         else:
-            pred = np.asarray(self.model.predict(X), dtype=np.float64)
+            pred = np.asarray(model.predict(X), dtype=np.float64)
             U = np.full_like(pred, np.nan)
-            unc_note = (f"model set {getattr(self.model, 'id', '?')!r} has no uncertainty calibration: "
+            unc_note = (f"model set {getattr(model, 'id', '?')!r} has no uncertainty calibration: "
                         "no U (NaN, flag no_uncertainty)")
         check_deadline(deadline, "flags")
         finite = np.isfinite(pred[:, 0]) & np.isfinite(pred[:, 1]) & np.isfinite(pred[:, 2])
@@ -316,11 +375,11 @@ class ScanHandler:
         # N·L and N·V are the features' shared intermediates (already computed when the model uses Inc/ViewAng).
         kept_flags = fl.angle_flags(prepared.normals, g.L, g.V, p.grazing_incidence_deg, p.grazing_view_deg,
                                     cos_i=ctx.n_dot_l(), cos_v=ctx.n_dot_v())
-        lo, hi = self.model.domain
+        lo, hi = model.domain
         kept_flags |= fl.domain_flags(X, lo, hi, p.domain_margin)
         if mv_ood is not None:  # the multivariate domain complements the per-feature range check
             kept_flags[mv_ood] |= fl.FLAG_OUT_OF_DOMAIN
-        shape_ood = self._shape_out_of_domain(prepared)
+        shape_ood = self._shape_out_of_domain(prepared, model)
         if shape_ood is not None:  # a surface shape the calibration never covered (concave, sharp): no widening
             kept_flags[shape_ood] |= fl.FLAG_OUT_OF_DOMAIN
         kept_flags[np.asarray(prepared.normal_quality) < p.normal_quality_min] |= fl.FLAG_UNRELIABLE_NORMAL
@@ -343,15 +402,16 @@ class ScanHandler:
 
         quality = self.summarize(flags, pred, n_valid, settings_defaulted, kept is not None, n, finite=finite,
                                  U=U[finite & ~no_u], decisions=cls[finite], note=unc_note)
+        quality["model_id"] = str(getattr(model, "id", ""))
         return ScanResult(deviations=dev, flags=flags, quality=quality, prepared=prepared, features=X,
                           predictions=pred, context=ctx, scan=scan, kept=kept, uncertainty=unc, row_uncertainty=U,
-                          decisions=decisions, shape_out_of_domain=shape_ood)
+                          decisions=decisions, shape_out_of_domain=shape_ood, model_id=str(getattr(model, "id", "")))
 
-    def _shape_out_of_domain(self, prepared: Any) -> np.ndarray | None:
+    def _shape_out_of_domain(self, prepared: Any, model: Any = None) -> np.ndarray | None:
         """(M,) bool: kept points whose mean curvature lies outside the model's shape domain widened by
         ``domain_margin`` (card ``domain_shape``); None when the card has none. NaN curvature (unorganized scan,
         scan border) is not flagged."""
-        dom = getattr(self.model, "shape_domain", None)
+        dom = getattr(self.model if model is None else model, "shape_domain", None)
         if dom is None:
             return None
         from .preprocess.curvature import mean_curvature

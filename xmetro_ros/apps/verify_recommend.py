@@ -68,8 +68,13 @@ def region_centre(art: Artifact, direction: tuple[float, float, float]) -> np.nd
 
 def verify_regions(model_dir: Path | None = None, radius_mm: float = 4.0, n_regions: int = len(REGIONS),
                    candidate_seeds: int = 1, n_seeds: int = 3, finalists: int = 5, against_all: bool = False,
-                   region_set: str = "test", **recommend_kw: Any) -> dict[str, Any]:
+                   region_set: str = "test", pose_model_dir: Path | str | None = None,
+                   **recommend_kw: Any) -> dict[str, Any]:
     """Run the check over the first ``n_regions`` regions; returns the JSON-serialisable report.
+
+    Models as in the node: ``model_dir`` (None: the shipped default) judges the scan, unless the pose model
+    (``pose_model_dir``; None: the shipped pose model when ``model_dir`` is None, else none; ``"none"``: none) holds
+    it better (``ScanHandler.route``); the search runs with the pose model when there is one, else with the primary.
 
     ``against_all``: the actual best is sought among ALL candidates of the search, those the model's domain check
     discards included (a second search with ``max_out_of_domain`` 1 lists them); the recommendation is still the
@@ -79,25 +84,32 @@ def verify_regions(model_dir: Path | None = None, radius_mm: float = 4.0, n_regi
     from ..inference import ModelSet
     from ..recommend import recommend
     from ..resim import GroundTruth, Region, verify
+    from ..resources import pose_model_dir as shipped_pose_model_dir
     from ..scan_handler import HandlerParams, ScanHandler
     from ..scanner import ScannerModel
     from ..sim import simulate_scan
 
     scanner = ScannerModel.load()
     model = ModelSet.load(str(model_dir) if model_dir else None)
+    if pose_model_dir is None:
+        pose = None if model_dir else ModelSet.load(shipped_pose_model_dir())
+    else:
+        pose = None if str(pose_model_dir).lower() == "none" else ModelSet.load(str(pose_model_dir))
+    search = pose if pose is not None else model
+    handler = ScanHandler(model, scanner, HandlerParams(), pose_model=pose)
     out: list[dict[str, Any]] = []
     um = 1e3
     for i, (art, st, direction) in enumerate(regions[:n_regions]):
         t0 = time.monotonic()
         scan = simulate_scan(art, ScanSettings(*st), scanner=scanner, seed=seed0 + i)
-        res = ScanHandler(model, scanner, HandlerParams()).process(scan)
+        res = handler.process(scan)
         c = region_centre(art, direction)
         pts = np.asarray(res.prepared.points, dtype=np.float64)
         rows = np.flatnonzero(np.linalg.norm(art.project(pts) - c, axis=1) <= radius_mm)
-        rec = recommend(model, res.context, rows, res.features, scan.pose, scanner, scan.settings, **recommend_kw)
+        rec = recommend(search, res.context, rows, res.features, scan.pose, scanner, scan.settings, **recommend_kw)
         checked: Any = rec
         if against_all:
-            listed = recommend(model, res.context, rows, res.features, scan.pose, scanner, scan.settings,
+            listed = recommend(search, res.context, rows, res.features, scan.pose, scanner, scan.settings,
                                **{**recommend_kw, "max_out_of_domain": 1.0})
             checked = SimpleNamespace(before=rec.before, best=rec.best, ranked=listed.ranked)
         ver = verify(GroundTruth.from_scan(scan, scanner), Region(centre=c, radius_mm=radius_mm), checked,
@@ -133,7 +145,8 @@ def verify_regions(model_dir: Path | None = None, radius_mm: float = 4.0, n_regi
     def med(k: str) -> float:
         return float(np.median([r[k] for r in out]))
 
-    return {"model": model.id, "region_set": region_set, "rank_by": recommend_kw.get("rank_by", "score"),
+    return {"model": search.id, "judge_models": sorted({model.id, *([pose.id] if pose is not None else [])}),
+            "region_set": region_set, "rank_by": recommend_kw.get("rank_by", "score"),
             "candidates_checked": "all (domain check off)" if against_all else "the search's", "regions": out,
             "median": {"after_over_best": med("after_over_best"), "after_percentile": med("after_percentile"),
                        "rank_correlation": med("rank_correlation")}}
@@ -146,6 +159,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=None, help="JSON file to write (default: stdout)")
     p.add_argument("--model", type=Path, default=None, help="model set directory (default: the installed default)")
+    p.add_argument("--pose-model", default=None, metavar="DIR|none",
+                   help="second model set the search runs with (default: the shipped pose model when --model is not "
+                        "given, else none; 'none': the search runs with --model)")
     p.add_argument("--radius", type=float, default=4.0, help="region radius, mm")
     p.add_argument("--regions", type=int, default=len(REGIONS), help="use the first N regions")
     p.add_argument("--quick", action="store_true", help="3 x 3 tilts only, no turns (a quick check)")
@@ -163,7 +179,8 @@ def run(args: argparse.Namespace) -> int:
     kw: dict[str, Any] = {"turn_steps": 1} if args.quick else {}
     kw["rank_by"] = args.rank_by
     rep = verify_regions(args.model, args.radius, max(1, min(args.regions, len(REGIONS))),
-                         against_all=args.against_all, region_set="validation" if args.validation else "test", **kw)
+                         against_all=args.against_all, region_set="validation" if args.validation else "test",
+                         pose_model_dir=args.pose_model, **kw)
     text = json.dumps(rep, indent=2)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -109,7 +109,8 @@ class XmetroCore:
             self.model = model
         except Exception as e:
             self.degraded = f"model unavailable: {e}"
-        self.handler = ScanHandler(self.model, self.scanner, handler_params(self.values))
+        self.pose_model, self.pose_model_error = self._load_pose_model()
+        self.handler = ScanHandler(self.model, self.scanner, handler_params(self.values), pose_model=self.pose_model)
         warm_output_kernels()  # the output record kernel, compiled or loaded now rather than on the first scan
         self._settings: deque[SettingsEntry] = deque(maxlen=int(values["settings_history"]))
         self._settings_lock = threading.Lock()
@@ -117,9 +118,47 @@ class XmetroCore:
         self.reference = reference_checker(values)
         self.cad, self.cad_error = load_cad(values)
 
+    def _load_pose_model(self) -> tuple[Any, str]:
+        """(the second model set or None, why there is none when one was asked for): ``pose_model_dir`` '' = the
+        shipped pose model, but only with the shipped primary (a user's own ``model_dir`` is for their scanner);
+        'none' = none. It must take the primary's features and be trained for the same scanner; a failure leaves
+        the node judging with the primary alone (logged, on /diagnostics)."""
+        from ..inference import ModelSet
+        from ..resources import pose_model_dir
+
+        v = self.values
+        path = str(v.get("pose_model_dir", ""))
+        if self.model is None or path.lower() == "none" or (path == "" and v["model_dir"]):
+            return None, ""
+        try:
+            pm = ModelSet.load(path or pose_model_dir(), threads=int(v["inference_threads"]))
+            if list(pm.feature_names) != list(self.model.feature_names):
+                raise ValueError(f"its features {list(pm.feature_names)} are not the primary model's")
+            if model_scanner_id(pm.card) != model_scanner_id(self.model.card):
+                raise ValueError(f"it was trained for scanner {model_scanner_id(pm.card)!r}, the primary model for "
+                                 f"{model_scanner_id(self.model.card)!r}")
+            return pm, ""
+        except Exception as e:
+            msg = f"pose model set unavailable ({path or 'shipped'}): {e}; judging with {self.model.id!r} alone"
+            if self.log is not None:
+                self.log.warning(msg)
+            return None, msg
+
     @property
     def model_id(self) -> str:
         return self.model.id if self.model is not None else ""
+
+    def _model_by_id(self, model_id: str) -> Any:
+        """The loaded model set with this id (the one that judged a scan): the pose model or the primary."""
+        if self.pose_model is not None and model_id == self.pose_model.id:
+            return self.pose_model
+        return self.model
+
+    @property
+    def search_model(self) -> Any:
+        """The model set ``~/recommend_settings`` searches with: the pose model when loaded (trained at the
+        orientations the search tries), else the primary."""
+        return self.pose_model if self.pose_model is not None else self.model
 
     def update_values(self, changes: dict[str, Any]) -> None:
         """Apply live parameter changes (already validated)."""
@@ -264,11 +303,12 @@ class XmetroCore:
                                   lambda: live_candidates(res.prepared))
             except Exception as e:
                 r = ReferenceResult("MISMATCH", n_mon, 0, message=f"reference check failed: {type(e).__name__}: {e}")
-        return reference_message(msg.header, self.model_id, r)
+        return reference_message(msg.header, res.model_id if res is not None else self.model_id, r)
 
     def _outputs(self, msg: PointCloud2, q: ScanQuality, res: Any, entry: SettingsEntry, stamp_ns: int,
                  t0: float) -> CoreOutput:
         fill_quality(q, res.quality)
+        q.model_id = res.model_id  # the model set that judged this scan (the pose model's domain may hold it)
         keep = res.kept
         out_h, out_w = (1, len(keep)) if keep is not None else (int(msg.height), int(msg.width))
         # x, y, z exactly as received (float32 metres), one point per (kept) input point.
@@ -282,7 +322,7 @@ class XmetroCore:
             stamp_ns=stamp_ns, frame_id=msg.header.frame_id, n_points=out_h * out_w,
             index=np.asarray(res.prepared.index), points=np.asarray(res.prepared.points), features=res.features,
             predictions=res.predictions, context=_lean_context(res.context), settings=entry.settings, pose=entry.pose,
-            scanner_id=self.scanner.id, model_id=self.model_id, uncertainty=res.row_uncertainty, cad_pose=cad_pose))
+            scanner_id=self.scanner.id, model_id=res.model_id, uncertainty=res.row_uncertainty, cad_pose=cad_pose))
         q.processing_latency = time.monotonic() - t0
         qd = res.quality
         return CoreOutput(q, dev_cloud, corrected, f"scan {stamp_ns}: {qd['verdict_name']} ({qd['message']})",
@@ -331,12 +371,13 @@ class XmetroCore:
                       Explain.Request.OUTPUT_UNCERTAINTY: "uncertainty"}.get(int(req.output))
             if output is None:
                 raise ServiceError(f"unknown output {int(req.output)} (OUTPUT_ERROR=0, OUTPUT_UNCERTAINTY=1)")
-            r = explain_rows(self.model, judged, rows, axes, output=output)
+            model = self._model_by_id(judged.model_id)  # explained with the model set that judged the scan
+            r = explain_rows(model, judged, rows, axes, output=output)
         except ServiceError as e:
             return failed_response(self._explain_base(), str(e))
         except Exception as e:
             return failed_response(self._explain_base(), f"explanation failed: {type(e).__name__}: {e}")
-        return explain_response(r, self.model_id, note or f"explained {len(rows)} points")
+        return explain_response(r, model.id, note or f"explained {len(rows)} points")
 
     def _explain_base(self) -> Explain.Response:
         resp = Explain.Response()
@@ -356,7 +397,7 @@ class XmetroCore:
         from ..recommend import RecommendCancelled, recommend
 
         base = RecommendSettings.Response()
-        base.model_id = self.model_id
+        base.model_id = self.search_model.id if self.model is not None else ""
         v = self.values
         try:
             if self.model is None:
@@ -380,7 +421,7 @@ class XmetroCore:
             max_turn = v["recommend_max_turn"] if req.max_turn == 0 else max(req.max_turn, 0.0)
             if not (math.isfinite(max_tilt) and math.isfinite(max_turn)):
                 raise ServiceError("max_tilt / max_turn must be finite")
-            rec = recommend(self.model, judged.context, rows, judged.features, judged.pose, self.scanner,
+            rec = recommend(self.search_model, judged.context, rows, judged.features, judged.pose, self.scanner,
                             judged.settings, cands or None, max_points=int(v["recommend_max_points"]),
                             max_tilt=max_tilt, tilt_steps=int(v["recommend_tilt_steps"]), max_turn=max_turn,
                             turn_steps=int(v["recommend_turn_steps"]),
@@ -393,7 +434,8 @@ class XmetroCore:
             return failed_response(base, str(e))
         except Exception as e:
             return failed_response(base, f"recommendation failed: {type(e).__name__}: {e}")
-        return recommend_response(rec, judged.frame_id, judged.stamp_ns, self.scanner.id, tol_mm, self.model_id)
+        return recommend_response(rec, judged.frame_id, judged.stamp_ns, self.scanner.id, tol_mm,
+                                  self.search_model.id)
 
     def _occluder(self, judged: JudgedScan) -> Any:
         """The CAD part placed as in the judged scan's CAD map (its self-occlusion for the recommender), or None."""

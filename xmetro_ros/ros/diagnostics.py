@@ -10,7 +10,8 @@ Level (the most severe reason wins; the message lists the reasons, most severe f
   ERROR); scans arrive but no ScannerSettings ever did (every scan runs on the configured defaults);
 - WARN: no scan for ``scan_timeout`` seconds (stale input: a dead scanner or a lost connection; also before the
   first scan); the last scan was judged WARN or RESCAN, or its settings were defaulted; the reference drift monitor
-  says WARN (held until ``~/reset_reference``), or the last reference scan did not show the declared sphere;
+  says WARN (held until ``~/reset_reference``), or the last reference scan did not show the declared sphere; the
+  configured pose model set (``pose_model_dir``) could not be used (the primary judges every scan);
 - OK otherwise.
 
 Values: node-level scan accounting (``scans_received`` = ``scans_judged`` + ``scans_dropped`` + ``scans_queued`` +
@@ -54,10 +55,12 @@ class DiagnosticsState:
         model_id: the model set's id ("" when degraded).
         degraded: why the node runs without a model ("" = it has one).
         scan_timeout: seconds without a scan before WARN (stale input).
+        pose_model_id, pose_model_error: the second model set's id, or why the configured one is not used (WARN).
     """
 
     def __init__(self, node_name: str, hardware_id: str, model_id: str, degraded: str = "",
-                 scan_timeout: float = 5.0, cad_mesh: str = "", cad_error: str = "") -> None:
+                 scan_timeout: float = 5.0, cad_mesh: str = "", cad_error: str = "", pose_model_id: str = "",
+                 pose_model_error: str = "") -> None:
         self.name = status_name(node_name)
         self.hardware_id = hardware_id
         self.model_id = model_id
@@ -86,6 +89,8 @@ class DiagnosticsState:
         self.cad_state = ("off" if not cad_mesh else "failed to load" if cad_error
                           else f"{cad_mesh}: no scan compared yet")
         self.cad_failed = False             # the last scan's CAD comparison failed (WARN until one succeeds)
+        self.pose_model_id = pose_model_id  # the second model set (scans outside the primary's domain), "" = none
+        self.pose_model_error = pose_model_error  # one was configured but could not be used: WARN
         self._start = time.monotonic()
         self._last_scan: float | None = None
         self._latencies: deque[float] = deque(maxlen=100)
@@ -181,6 +186,8 @@ class DiagnosticsState:
         if since > self.scan_timeout:
             what = "no scan for" if self._last_scan is not None else "no scan received in"
             out.append((WARN, f"stale: {what} {since:.1f} s (scan_timeout {self.scan_timeout:g} s)"))
+        if self.pose_model_error:
+            out.append((WARN, self.pose_model_error))
         if self.cad_error:
             out.append((ERROR, self.cad_error))
         elif self.cad_failed:
@@ -211,6 +218,7 @@ class DiagnosticsState:
             events = sum(1 for t in self._times if now - t <= FREQUENCY_WINDOW_S)
             values = {
                 "model_id": self.model_id,
+                "pose_model_id": self.pose_model_id or self.pose_model_error or "none",
                 "degraded": self.degraded or "no",
                 "scans_received": self.received,
                 "scans_judged": self.processed + self.failed,

@@ -134,7 +134,9 @@ class XmetroWiring(ScanWorker, ServiceHandlers):
             self.get_logger().error(f"{core.cad_error}; scans are judged without the CAD comparison")
         self.diag = DiagnosticsState(self.get_name(), core.scanner.id, core.model_id, core.degraded,
                                      scan_timeout=float(values["scan_timeout"]), cad_mesh=str(values["cad_mesh"]),
-                                     cad_error=core.cad_error)
+                                     cad_error=core.cad_error,
+                                     pose_model_id=core.pose_model.id if core.pose_model is not None else "",
+                                     pose_model_error=core.pose_model_error)
         self._qmax = int(values["queue_depth"])
         self.core = core
         return core

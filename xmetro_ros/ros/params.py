@@ -40,6 +40,10 @@ _PI = math.pi
 PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("model_dir", "", "path", "model set directory (card.json + ONNX); '' = the shipped default model",
               read_only=True),
+    ParamSpec("pose_model_dir", "", "path", "second model set, trained at the recommender's head orientations: it "
+              "judges scans taken there that the primary's domain does not hold, and the recommender searches with "
+              "it; '' = the shipped pose model when model_dir is '' (else none), 'none' = no second model",
+              read_only=True),
     ParamSpec("scanner_config", "", "path", "scanner YAML; '' = the packaged config/scanners/default.yaml",
               read_only=True),
     ParamSpec("allow_foreign_model", False, "", "use a model set trained for another scanner than scanner_config's "

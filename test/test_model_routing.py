@@ -1,0 +1,131 @@
+"""Two model sets (ROS-free): the primary judges the scans its domain holds; a scan taken at one of the rescan
+recommender's orientations, outside the primary's domain and inside the shipped pose model's, is judged by the pose
+model, exactly as that model alone would judge it; a pose outside both, or a part scanned looking down, stays with
+the primary; the node's core loads the pose model only next to the shipped primary, with the same features and
+scanner."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from xmetro_ros import flags as fl
+from xmetro_ros.artifacts import Sphere
+from xmetro_ros.geometry import HeadPose
+from xmetro_ros.inference import ModelSet
+from xmetro_ros.recommend import rotation_xyz
+from xmetro_ros.resources import default_model_dir, pose_model_dir
+from xmetro_ros.scan_handler import ROUTE_MAX_OUT_OF_DOMAIN, HandlerParams, ScanHandler
+from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.sim import simulate_scan
+
+
+@pytest.fixture(scope="module")
+def models():
+    return ModelSet.load(default_model_dir()), ModelSet.load(pose_model_dir())
+
+
+def _scan(r_head, seed=3):
+    pose = None if r_head is None else HeadPose.looking_down(90.0).rotated(r_head, pivot=np.array([0, 0, 22.5]))
+    return simulate_scan(Sphere(22.5), ScanSettings(10.0, 4.0, 0.5), seed=seed, pose=pose)
+
+
+def _ood(res) -> float:
+    f = res.flags[np.isfinite(res.deviations[:, 0])]
+    return float(((f & fl.FLAG_OUT_OF_DOMAIN) > 0).mean())
+
+
+def test_shipped_pose_model_is_the_pose_campaigns(models):
+    primary, pose = models
+    assert primary.id != pose.id and list(primary.feature_names) == list(pose.feature_names)
+    assert pose.card["profile"] == "default" and pose.calibrated
+    assert "--profile default" in pose.card["trained_by"]
+    assert pose.card["data_manifest"]["campaign_args"]["pose_mode"] == "cycle"
+
+
+@pytest.mark.parametrize("name, r_head, routed", [
+    ("looking down", None, "primary"),
+    ("tilt 15 deg", rotation_xyz(0.2618, 0.0, 0.0), "pose"),
+    ("turn 90 deg", rotation_xyz(0.0, 0.0, 1.5708), "pose"),
+    ("tilt 15 + turn 90", rotation_xyz(0.2618, 0.2618, 1.5708), "pose"),
+    ("tilt 40 deg: outside both", rotation_xyz(0.698, 0.0, 0.0), "primary"),
+])
+def test_each_scan_is_judged_by_the_model_whose_domain_holds_it(models, name, r_head, routed):
+    primary, pose = models
+    scanner = ScannerModel.load()
+    scan = _scan(r_head)
+    both = ScanHandler(primary, scanner, HandlerParams(), pose_model=pose).process(scan)
+    alone = {m.id: ScanHandler(m, scanner, HandlerParams()).process(scan) for m in (primary, pose)}
+    want = (primary if routed == "primary" else pose).id
+    assert both.model_id == both.quality["model_id"] == want, name
+    # the routed judgement is that model's own, bit for bit
+    ref = alone[want]
+    np.testing.assert_array_equal(both.deviations, ref.deviations)
+    np.testing.assert_array_equal(both.uncertainty, ref.uncertainty)
+    np.testing.assert_array_equal(both.flags, ref.flags)
+    if routed == "pose":  # why: the primary's domain does not hold the scan, the pose model's does
+        assert _ood(alone[primary.id]) > ROUTE_MAX_OUT_OF_DOMAIN and _ood(alone[pose.id]) < ROUTE_MAX_OUT_OF_DOMAIN
+    # without a second model every scan is the primary's
+    assert ScanHandler(primary, scanner, HandlerParams()).process(scan).model_id == primary.id
+
+
+def test_a_looking_down_part_stays_with_the_primary(models):
+    """A part scanned looking down (the step, presented as in the parts study) lies partly outside the primary's
+    domain — and less outside the pose model's — but its head orientation is the primary's: it stays with the
+    primary, whose figures on the parts are the documented ones (docs/parts.md)."""
+    from xmetro_ros.parts import make_part
+    from xmetro_ros.parts_study import PRESENTATION
+
+    primary, pose = models
+    scanner = ScannerModel.load()
+    scan = simulate_scan(make_part("step", form_um=40.0).transformed(PRESENTATION), ScanSettings(6.0, 3.0, 0.5),
+                         seed=7)
+    alone = {m.id: ScanHandler(m, scanner, HandlerParams()).process(scan) for m in (primary, pose)}
+    assert _ood(alone[primary.id]) > max(ROUTE_MAX_OUT_OF_DOMAIN, _ood(alone[pose.id]))
+    both = ScanHandler(primary, scanner, HandlerParams(), pose_model=pose).process(scan)
+    assert both.model_id == primary.id
+    # the domain rule alone (no head orientation given) would have sent it to the pose model
+    h = ScanHandler(primary, scanner, HandlerParams(), pose_model=pose)
+    X = alone[primary.id].features
+    assert h.route(X) is pose and h.route(X, scan.pose.rotation) is primary
+
+
+def test_core_loads_the_pose_model_only_where_it_belongs(tmp_path):
+    from xmetro_ros.ros.core import XmetroCore
+    from xmetro_ros.ros.params import PARAMS
+
+    base = {p.name: p.default for p in PARAMS}
+    core = XmetroCore(base)
+    assert core.pose_model is not None and core.search_model is core.pose_model and not core.pose_model_error
+    assert XmetroCore({**base, "pose_model_dir": "none"}).pose_model is None
+    # a model_dir of one's own (a calibrated scanner) gets no shipped pose model unless asked for
+    own = tmp_path / "own"
+    shutil.copytree(default_model_dir(), own)
+    c2 = XmetroCore({**base, "model_dir": str(own)})
+    assert c2.pose_model is None and c2.search_model is c2.model
+    # a pose model for other features is refused, and the node judges with the primary alone, saying why
+    odd = tmp_path / "odd"
+    shutil.copytree(pose_model_dir(), odd)
+    card = json.loads((odd / "card.json").read_text())
+    card["feature_names"] = list(reversed(card["feature_names"]))
+    card["feature_units"] = list(reversed(card["feature_units"]))
+    (odd / "card.json").write_text(json.dumps(card))
+    c3 = XmetroCore({**base, "pose_model_dir": str(odd)})
+    assert c3.model is not None and c3.pose_model is None and "not the primary model's" in c3.pose_model_error
+
+
+def test_diagnostics_say_which_models_judge():
+    from builtin_interfaces.msg import Time
+
+    from xmetro_ros.ros.diagnostics import WARN, DiagnosticsState
+
+    ok = DiagnosticsState("xmetro_node", "xm-ls90", "primary-id", pose_model_id="pose-id")
+    values = {kv.key: kv.value for kv in ok.build(Time()).status[0].values}
+    assert values["model_id"] == "primary-id" and values["pose_model_id"] == "pose-id"
+    bad = DiagnosticsState("xmetro_node", "xm-ls90", "primary-id", pose_model_error="pose model set unavailable: x")
+    st = bad.build(Time()).status[0]
+    assert bad.level() >= WARN and "pose model set unavailable" in st.message
+    assert {kv.key: kv.value for kv in st.values}["pose_model_id"] == "pose model set unavailable: x"
