@@ -39,15 +39,17 @@ N_REGION = 20_000
 
 
 def main() -> None:
-    from xmetro_ros.resources import pose_model_dir
+    from xmetro_ros.resources import pose_model_path
 
     scanner = ScannerModel.load()
     custom = os.environ.get("XMETRO_TEST_MODEL_DIR")
     judge = ModelSet.load(custom or None)
-    # as the node: the search runs with the shipped pose model next to the shipped primary (docs/node.md)
-    model = judge if custom else ModelSet.load(pose_model_dir())
+    # as the node: the search runs with the pose model (the shipped one next to the shipped primary; docs/node.md)
+    pose_path = pose_model_path(custom, None)
+    pose = None if pose_path is None else ModelSet.load(pose_path)
+    model = pose if pose is not None else judge
     scan = simulate_scan(Sphere(27.5), ScanSettings(15.0, 5.0, 0.5), scanner=scanner, seed=21)
-    res = ScanHandler(judge, scanner, HandlerParams(), pose_model=None if custom else model).process(scan)
+    res = ScanHandler(judge, scanner, HandlerParams(), pose_model=pose).process(scan)
     pts = np.asarray(res.prepared.points)
     rows = np.argsort(np.linalg.norm(pts - [0, 0, 27.5], axis=1))[:N_REGION]
     radius = float(np.linalg.norm(pts[rows[-1]] - [0, 0, 27.5]))

@@ -33,6 +33,7 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -463,11 +464,11 @@ class ModelSet:
         U, dist = self._expand(sig, X)
         return UncertainPrediction(err, U, sig, dist, self.out_of_domain_mv(X, dist))
 
-    @property
+    @cached_property
     def training_rotations(self) -> list[np.ndarray] | None:
         """Head orientations (3×3 rotations, head frame relative to looking down) of the simulated campaign the
         model set was trained on: the card's campaign ``poses``, looking down only when it names none; None when the
-        card does not say (e.g. trained on recorded bags)."""
+        card does not say (e.g. trained on recorded bags). Read once (the router asks on every scan)."""
         dm = self.card.get("data_manifest") or {}
         poses = (dm.get("campaign_args") or {}).get("poses")
         if poses:

@@ -278,13 +278,13 @@ def resimulate(truth: GroundTruth, region: Region, settings: ScanSettings, pose:
 
 
 def resimulate_many(truth: GroundTruth, region: Region, setups: Sequence[tuple[ScanSettings, HeadPose]], *,
-                    n_seeds: int = 2, seeds: Sequence[int] | None = None,
+                    n_seeds: int = 2, seeds: Sequence[int] | None = None, reference: np.ndarray | None = None,
                     predicted: Sequence[float | None] | None = None,
                     rotations: Sequence[np.ndarray | None] | None = None) -> list[ActualError]:
     """``resimulate`` for each (settings, start pose) of ``setups`` with the same seeds (``seeds``, else ``n_seeds``
-    derived from the judged seed) and reference points."""
+    derived from the judged seed) and reference points (``reference``, else computed once here)."""
     seeds = list(seeds) if seeds is not None else resim_seeds(truth, n_seeds)
-    ref = _reference_points(truth, region)
+    ref = _reference_points(truth, region) if reference is None else reference
     out = []
     for k, (s, pose) in enumerate(setups):
         a = resimulate(truth, region, s, pose, seeds=seeds, reference=ref,
@@ -324,11 +324,11 @@ def verify(truth: GroundTruth, region: Region, rec: Any, *, n_seeds: int = 3, al
     best = None
     if all_candidates:
         cands = resimulate_many(truth, region, [(c.settings, c.pose) for c in rec.ranked], seeds=sel_seeds,
-                                predicted=[_predicted(c) for c in rec.ranked],
+                                reference=ref, predicted=[_predicted(c) for c in rec.ranked],
                                 rotations=[c.rotation for c in rec.ranked])
         order = np.argsort([a.p95_mm for a in cands], kind="stable")[:finalists]
-        same = [k for k in order if _same_setup(rec.ranked[k], rec.best)]
-        final = [after] + [one(rec.ranked[k]) for k in order if k not in same]
+        # the recommendation is measured already (``after``), when it is one of the finalists
+        final = [after] + [one(rec.ranked[k]) for k in order if not _same_setup(rec.ranked[k], rec.best)]
         best = min(final, key=lambda a: a.p95_mm)
     return Verification(before, after, cands, best)
 

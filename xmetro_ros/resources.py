@@ -19,7 +19,7 @@ import os
 from pathlib import Path
 
 __all__ = ["PACKAGE", "ament_share_dir", "config_path", "default_model_dir", "package_dir", "pose_model_dir",
-           "repo_root"]
+           "pose_model_path", "repo_root"]
 
 PACKAGE = "xmetro_ros"
 
@@ -85,3 +85,15 @@ def pose_model_dir() -> Path:
     scans taken there and the recommender searches with it; docs/node.md, "Two model sets"), found like
     :func:`default_model_dir`."""
     return _shipped_model_dir("posed")
+
+
+def pose_model_path(model_dir: str | Path | None, pose_model_dir_value: str | Path | None) -> Path | None:
+    """The pose model set to load next to the primary ``model_dir`` (the node's ``pose_model_dir`` rule): 'none' →
+    None; a path → it; '' or None → the shipped pose model, but only next to the shipped primary (``model_dir`` ''
+    or None: a model of one's own is for its own scanner)."""
+    v = "" if pose_model_dir_value is None else str(pose_model_dir_value)
+    if v.lower() == "none":
+        return None
+    if v:
+        return Path(v)
+    return None if model_dir else pose_model_dir()

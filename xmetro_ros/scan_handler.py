@@ -267,9 +267,10 @@ class ScanHandler:
         limit = 1.0 + self.params.domain_margin
 
         def share(m: Any) -> float:
+            if not m.card.get("domain_mv"):
+                return float(np.mean(m.out_of_domain(rows)))
             with np.errstate(invalid="ignore"):
-                return float(np.mean(m.domain_distance(rows) > limit)) if m.card.get("domain_mv") else float(
-                    np.mean(m.out_of_domain(rows)))
+                return float(np.mean(m.domain_distance(rows) > limit))
 
         primary = share(self.model)
         if primary <= ROUTE_MAX_OUT_OF_DOMAIN:
@@ -341,6 +342,7 @@ class ScanHandler:
             raise ScanError("MISSING_INPUT_FIELD", str(e)) from e
         check_deadline(deadline, "inference")
         model = self.route(X, scan.pose.rotation if scan.pose is not None else None)
+        model_id = str(getattr(model, "id", ""))
         # Rows with a non-finite feature get NaN from the model (and are kept out of PointNet sets).
         # U comes from the same call as the errors: a PointNet point's prediction depends on its set.
         unc_note = ""
@@ -401,17 +403,16 @@ class ScanHandler:
             flags[silent] |= fl.FLAG_INVALID_POINT
 
         quality = self.summarize(flags, pred, n_valid, settings_defaulted, kept is not None, n, finite=finite,
-                                 U=U[finite & ~no_u], decisions=cls[finite], note=unc_note)
-        quality["model_id"] = str(getattr(model, "id", ""))
+                                 U=U[finite & ~no_u], decisions=cls[finite], note=unc_note, model_id=model_id)
         return ScanResult(deviations=dev, flags=flags, quality=quality, prepared=prepared, features=X,
                           predictions=pred, context=ctx, scan=scan, kept=kept, uncertainty=unc, row_uncertainty=U,
-                          decisions=decisions, shape_out_of_domain=shape_ood, model_id=str(getattr(model, "id", "")))
+                          decisions=decisions, shape_out_of_domain=shape_ood, model_id=model_id)
 
-    def _shape_out_of_domain(self, prepared: Any, model: Any = None) -> np.ndarray | None:
+    def _shape_out_of_domain(self, prepared: Any, model: Any) -> np.ndarray | None:
         """(M,) bool: kept points whose mean curvature lies outside the model's shape domain widened by
         ``domain_margin`` (card ``domain_shape``); None when the card has none. NaN curvature (unorganized scan,
         scan border) is not flagged."""
-        dom = getattr(self.model if model is None else model, "shape_domain", None)
+        dom = getattr(model, "shape_domain", None)
         if dom is None:
             return None
         from .preprocess.curvature import mean_curvature
@@ -424,13 +425,14 @@ class ScanHandler:
 
     def summarize(self, flags: np.ndarray, pred: np.ndarray, n_valid: int, settings_defaulted: bool,
                   decimated: bool, n_received: int, finite: np.ndarray | None = None, U: np.ndarray | None = None,
-                  decisions: np.ndarray | None = None, note: str = "") -> dict[str, Any]:
+                  decisions: np.ndarray | None = None, note: str = "", model_id: str | None = None) -> dict[str, Any]:
         """Quality summary (mm): counts, per-flag counts, mean / p95 |error| and U per axis, decision class counts,
         verdict and its reason.
 
         ``pred`` (M, 3) mm: the predictions the error statistics are over, only its rows ``finite`` (bool (M,))
         when given; ``U`` (Q, 3): finite U of the predicted points that have one; ``decisions`` (P,): the class of
-        each finite prediction; ``note``: added to the message (why there is no U). Compiled one-pass statistics
+        each finite prediction; ``note``: added to the message (why there is no U); ``model_id``: the model set
+        that judged (default: the primary's id). Compiled one-pass statistics
         (xmetro_ros.scan_stats), the same numbers as numpy's ``count_nonzero`` / ``flag_counts`` / ``mean(axis=0)``
         / ``percentile(95, axis=0)`` (tested)."""
         from .scan_stats import abs_error_stats, flag_tally
@@ -477,5 +479,5 @@ class ScanHandler:
             "usable_fraction": n_usable / n_received if n_received else 0.0,
             "settings_defaulted": bool(settings_defaulted),
             "decimated": bool(decimated),
-            "model_id": getattr(self.model, "id", ""),
+            "model_id": getattr(self.model, "id", "") if model_id is None else model_id,
         }

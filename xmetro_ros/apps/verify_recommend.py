@@ -84,17 +84,15 @@ def verify_regions(model_dir: Path | None = None, radius_mm: float = 4.0, n_regi
     from ..inference import ModelSet
     from ..recommend import recommend
     from ..resim import GroundTruth, Region, verify
-    from ..resources import pose_model_dir as shipped_pose_model_dir
+    from ..resources import pose_model_path
     from ..scan_handler import HandlerParams, ScanHandler
     from ..scanner import ScannerModel
     from ..sim import simulate_scan
 
     scanner = ScannerModel.load()
     model = ModelSet.load(str(model_dir) if model_dir else None)
-    if pose_model_dir is None:
-        pose = None if model_dir else ModelSet.load(shipped_pose_model_dir())
-    else:
-        pose = None if str(pose_model_dir).lower() == "none" else ModelSet.load(str(pose_model_dir))
+    pose_path = pose_model_path(model_dir, pose_model_dir)
+    pose = None if pose_path is None else ModelSet.load(pose_path)
     search = pose if pose is not None else model
     handler = ScanHandler(model, scanner, HandlerParams(), pose_model=pose)
     out: list[dict[str, Any]] = []

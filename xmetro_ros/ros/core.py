@@ -119,19 +119,20 @@ class XmetroCore:
         self.cad, self.cad_error = load_cad(values)
 
     def _load_pose_model(self) -> tuple[Any, str]:
-        """(the second model set or None, why there is none when one was asked for): ``pose_model_dir`` '' = the
-        shipped pose model, but only with the shipped primary (a user's own ``model_dir`` is for their scanner);
-        'none' = none. It must take the primary's features and be trained for the same scanner; a failure leaves
-        the node judging with the primary alone (logged, on /diagnostics)."""
+        """(the second model set or None, why there is none when one was asked for), chosen by
+        ``resources.pose_model_path`` from ``model_dir`` and ``pose_model_dir``. It must take the primary's features
+        and be trained for the same scanner; a failure leaves the node judging with the primary alone (logged, on
+        /diagnostics)."""
         from ..inference import ModelSet
-        from ..resources import pose_model_dir
+        from ..resources import pose_model_path
 
         v = self.values
         path = str(v.get("pose_model_dir", ""))
-        if self.model is None or path.lower() == "none" or (path == "" and v["model_dir"]):
+        where = pose_model_path(v["model_dir"], path)
+        if self.model is None or where is None:
             return None, ""
         try:
-            pm = ModelSet.load(path or pose_model_dir(), threads=int(v["inference_threads"]))
+            pm = ModelSet.load(where, threads=int(v["inference_threads"]))
             if list(pm.feature_names) != list(self.model.feature_names):
                 raise ValueError(f"its features {list(pm.feature_names)} are not the primary model's")
             if model_scanner_id(pm.card) != model_scanner_id(self.model.card):
