@@ -241,6 +241,33 @@ def test_holm_and_noise_candidate_not_significant():
     assert np.allclose(holm(np.array([0.01, 0.04, 0.03])), [0.03, 0.06, 0.06])
 
 
+_CONCAT_ORDER = """
+import numpy as np
+from xmetro_ros.loop.data import LoopData
+def part(names, geo):
+    n = 2
+    return LoopData(points=np.zeros((n, 3)), normals=np.zeros((n, 3)), errors=np.zeros((n, 3)),
+                    X=np.zeros((n, 1), np.float32), feature_names=["f"], fields={k: np.zeros(n) for k in names},
+                    group=np.zeros(n, np.int64), order=np.arange(n), geometry={k: np.zeros(n) for k in geo})
+names = [f"field_{w}" for w in "t u line intensity time s pass reflectance".split()]
+d = LoopData.concat([part(names, ["u", "s", "L"]), part(names[::-1] + ["field_x"], ["L", "s", "u"])])
+print(",".join(d.fields), ",".join(d.geometry))
+"""
+
+
+def test_concat_keeps_the_first_parts_field_order_whatever_the_hash_seed():
+    """The trace seeds each candidate by its position, so the fields' order must not depend on the process's
+    hash seed (tables built on Dask workers have others); a set of names did (test_loop_dask failed 1 run in 4)."""
+    import os
+    import subprocess
+    import sys
+
+    outs = {subprocess.run([sys.executable, "-c", _CONCAT_ORDER], capture_output=True, text=True, check=True,
+                           env={**os.environ, "PYTHONHASHSEED": str(seed)}).stdout.strip() for seed in range(6)}
+    fields = ",".join(f"field_{w}" for w in "t u line intensity time s pass reflectance".split())
+    assert outs == {f"{fields} u,s,L"}
+
+
 def test_bad_inputs(tmp_path):
     need_shared(DATA)
     with pytest.raises(LoopInputError, match="does not exist"):

@@ -39,7 +39,7 @@ def assert_same(a: LoopData, b: LoopData) -> None:
         assert x.dtype == y.dtype and np.array_equal(x, y), k
     for k in ("fields", "geometry"):
         x, y = getattr(a, k), getattr(b, k)
-        assert set(x) == set(y) and all(np.array_equal(x[f], y[f]) and x[f].dtype == y[f].dtype for f in x), k
+        assert list(x) == list(y) and all(np.array_equal(x[f], y[f]) and x[f].dtype == y[f].dtype for f in x), k
     assert (a.feature_names, a.group_names, a.source, a.hold_by, a.artifact) == (
         b.feature_names, b.group_names, b.source, b.hold_by, b.artifact)
 

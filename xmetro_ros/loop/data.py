@@ -89,8 +89,10 @@ class LoopData:
         names = parts[0].feature_names
         if any(p.feature_names != names for p in parts):
             raise LoopInputError("inputs have different feature sets; give inputs of one kind per loop run")
-        common = set(parts[0].fields).intersection(*[set(p.fields) for p in parts[1:]])
-        gcommon = set(parts[0].geometry).intersection(*[set(p.geometry) for p in parts[1:]])
+        # The first part's order, not a set's: the trace seeds each candidate by its position, and a set of str
+        # iterates in an order that changes with the process's hash seed (parts built on Dask workers).
+        common = [k for k in parts[0].fields if all(k in p.fields for p in parts[1:])]
+        gcommon = [k for k in parts[0].geometry if all(k in p.geometry for p in parts[1:])]
         groups, gnames, off = [], [], 0
         for p in parts:
             ug, inv = np.unique(p.group, return_inverse=True)
