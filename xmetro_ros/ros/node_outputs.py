@@ -225,7 +225,7 @@ def quality_dict(q: Any) -> dict[str, Any]:
 
 def _cmp_values(path: str, a: Any, b: Any, atol: float, diffs: list[str]) -> None:
     if isinstance(a, dict) and isinstance(b, dict):
-        for k in a.keys() | b.keys():
+        for k in sorted(a.keys() | b.keys()):  # diffs listed in one order in every process
             _cmp_values(f"{path}.{k}", a.get(k), b.get(k), atol, diffs)
     elif isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
         if len(a) != len(b):
