@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from xmetro_ros.artifacts import Sphere
-from xmetro_ros.inference import ModelSet
+from xmetro_ros.inference import ModelSet, load_pose_model
 from xmetro_ros.recommend import recommend
 from xmetro_ros.scan_handler import HandlerParams, ScanHandler
 from xmetro_ros.scanner import ScannerModel, ScanSettings
@@ -46,7 +46,7 @@ def main() -> None:
     judge = ModelSet.load(custom or None)
     # as the node: the search runs with the pose model (the shipped one next to the shipped primary; docs/node.md)
     pose_path = pose_model_path(custom, None)
-    pose = None if pose_path is None else ModelSet.load(pose_path)
+    pose = None if pose_path is None else load_pose_model(pose_path, judge)
     model = pose if pose is not None else judge
     scan = simulate_scan(Sphere(27.5), ScanSettings(15.0, 5.0, 0.5), scanner=scanner, seed=21)
     res = ScanHandler(judge, scanner, HandlerParams(), pose_model=pose).process(scan)

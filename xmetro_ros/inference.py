@@ -47,8 +47,8 @@ from .set_kernels import from_sets as _from_sets
 from .set_kernels import to_sets as _to_sets
 from .set_kernels import warm_up as _warm_kernels
 
-__all__ = ["AXES", "CARD_FORMAT", "SIGMA_CAP_FACTOR", "ModelLoadError", "ModelSet", "UncertainPrediction",
-           "session_options", "update_card"]
+__all__ = ["AXES", "CARD_FORMAT", "LEGACY_SCANNER_ID", "SIGMA_CAP_FACTOR", "ModelLoadError", "ModelSet",
+           "UncertainPrediction", "load_pose_model", "model_scanner_id", "session_options", "update_card"]
 
 CARD_FORMAT = "xmetro-model-set/1"
 AXES = ("x", "y", "z")
@@ -287,15 +287,16 @@ class ModelSet:
         z -= b
         return np.sqrt(np.einsum("ij,ij->i", z, z))
 
-    def out_of_domain_mv(self, X: np.ndarray, distance: np.ndarray | None = None) -> np.ndarray:
-        """(M,) bool: outside the multivariate domain (distance > threshold; ``distance`` = domain_distance(X) when
-        already computed); the per-feature min/max check (:meth:`out_of_domain`) when the card has no
-        multivariate domain."""
+    def out_of_domain_mv(self, X: np.ndarray, distance: np.ndarray | None = None, margin: float = 0.0) -> np.ndarray:
+        """(M,) bool: outside the multivariate domain (distance > threshold × (1 + ``margin``), the node's
+        ``domain_margin`` widening it as it widens each feature's range; ``distance`` = domain_distance(X) when
+        already computed); the per-feature min/max check (:meth:`out_of_domain`, the card's margin) when the card
+        has no multivariate domain."""
         if not self.card.get("domain_mv"):
             return self.out_of_domain(X)
-        d = self.domain_distance(X) if distance is None else distance
+        d = self.domain_distance(X) if distance is None else np.asarray(distance)
         with np.errstate(invalid="ignore"):
-            return d > 1.0
+            return d > 1.0 + margin
 
     # ------------------------------------------------------------------ prediction
     def _check_X(self, X: np.ndarray) -> np.ndarray:
@@ -492,3 +493,25 @@ class ModelSet:
     def __repr__(self) -> str:
         fams = ", ".join(f"{m.family}[{''.join(AXES[a] for a in m.axes)}]" for m in self.members)
         return f"ModelSet(id={self.id!r}, features={len(self.feature_names)}, models={fams})"
+
+
+#: Cards written before 0.2.0 record no scanner: they were all trained on the packaged virtual scanner.
+LEGACY_SCANNER_ID = "xm-ls90"
+
+
+def model_scanner_id(card: dict[str, Any]) -> str:
+    """The id of the scanner a model set was trained for (its card's ``scanner.id``; legacy cards: xm-ls90)."""
+    return str((card.get("scanner") or {}).get("id") or LEGACY_SCANNER_ID)
+
+
+def load_pose_model(path: str | Path, primary: ModelSet, threads: int = 1) -> ModelSet:
+    """The second ("pose") model set at ``path``, to judge next to ``primary`` (``ScanHandler.route``) and to search
+    with (docs/node.md, "Two model sets"): it must take the primary's features and be trained for the same scanner.
+    Raises ModelLoadError (or what ``ModelSet.load`` raises) when it cannot."""
+    pm = ModelSet.load(path, threads=threads)
+    if list(pm.feature_names) != list(primary.feature_names):
+        raise ModelLoadError(f"its features {list(pm.feature_names)} are not the primary model's")
+    if model_scanner_id(pm.card) != model_scanner_id(primary.card):
+        raise ModelLoadError(f"it was trained for scanner {model_scanner_id(pm.card)!r}, the primary model for "
+                             f"{model_scanner_id(primary.card)!r}")
+    return pm

@@ -264,18 +264,12 @@ class ScanHandler:
         rows = rows[np.isfinite(rows).all(axis=1)]
         if len(rows) == 0:
             return self.model
-        limit = 1.0 + self.params.domain_margin
-
-        def share(m: Any) -> float:
-            if not m.card.get("domain_mv"):
-                return float(np.mean(m.out_of_domain(rows)))
-            with np.errstate(invalid="ignore"):
-                return float(np.mean(m.domain_distance(rows) > limit))
-
-        primary = share(self.model)
+        margin = self.params.domain_margin
+        primary = float(np.mean(self.model.out_of_domain_mv(rows, margin=margin)))
         if primary <= ROUTE_MAX_OUT_OF_DOMAIN:
             return self.model
-        return self.pose_model if share(self.pose_model) < primary else self.model
+        return self.pose_model if np.mean(self.pose_model.out_of_domain_mv(rows, margin=margin)) < primary \
+            else self.model
 
 
     def preprocess_config(self) -> Any:
@@ -351,11 +345,8 @@ class ScanHandler:
             up = model.predict_with_uncertainty(X)
             pred = np.asarray(up.errors, dtype=np.float64)
             U = np.asarray(up.U, dtype=np.float64)
-            if model.card.get("domain_mv"):
-                # domain_margin widens the multivariate threshold as it widens each feature's range (U is widened
-                # from distance 1 on, whatever the margin)
-                with np.errstate(invalid="ignore"):
-                    mv_ood = np.asarray(up.domain_distance) > 1.0 + p.domain_margin
+            if model.card.get("domain_mv"):  # (U is widened from distance 1 on, whatever the margin)
+                mv_ood = model.out_of_domain_mv(X, up.domain_distance, margin=p.domain_margin)
         else:
             pred = np.asarray(model.predict(X), dtype=np.float64)
             U = np.full_like(pred, np.nan)

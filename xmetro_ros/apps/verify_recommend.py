@@ -81,7 +81,7 @@ def verify_regions(model_dir: Path | None = None, radius_mm: float = 4.0, n_regi
     search's own, with the domain check. It measures what the domain check costs a model not trained there.
     ``region_set``: ``"test"`` (``REGIONS``, seeds 7000 + i) or ``"validation"`` (``VALIDATION_REGIONS``, 8000 + i)."""
     regions, seed0 = REGION_SETS[region_set]
-    from ..inference import ModelSet
+    from ..inference import ModelSet, load_pose_model
     from ..recommend import recommend
     from ..resim import GroundTruth, Region, verify
     from ..resources import pose_model_path
@@ -92,7 +92,7 @@ def verify_regions(model_dir: Path | None = None, radius_mm: float = 4.0, n_regi
     scanner = ScannerModel.load()
     model = ModelSet.load(str(model_dir) if model_dir else None)
     pose_path = pose_model_path(model_dir, pose_model_dir)
-    pose = None if pose_path is None else ModelSet.load(pose_path)
+    pose = None if pose_path is None else load_pose_model(pose_path, model)
     search = pose if pose is not None else model
     handler = ScanHandler(model, scanner, HandlerParams(), pose_model=pose)
     out: list[dict[str, Any]] = []

@@ -19,6 +19,7 @@ import numpy as np
 from sensor_msgs.msg import PointCloud2
 
 from ..geometry import HeadPose
+from ..inference import LEGACY_SCANNER_ID, model_scanner_id
 from ..msg import ReferenceCheck, ScannerSettings, ScanQuality
 from ..reference_check import ReferenceChecker, ReferenceResult, ReferenceSpec, live_candidates
 from ..scan_handler import ScanError, ScanHandler, check_deadline
@@ -42,15 +43,6 @@ from .params import handler_params
 
 __all__ = ["LEGACY_SCANNER_ID", "CoreOutput", "SettingsEntry", "XmetroCore", "load_cad", "model_scanner_id",
            "reference_checker"]
-
-#: Cards written before 0.2.0 record no scanner: they were all trained on the packaged virtual scanner.
-LEGACY_SCANNER_ID = "xm-ls90"
-
-
-def model_scanner_id(card: dict[str, Any]) -> str:
-    """The id of the scanner a model set was trained for (its card's ``scanner.id``; legacy cards: xm-ls90)."""
-    return str((card.get("scanner") or {}).get("id") or LEGACY_SCANNER_ID)
-
 
 @dataclass
 class SettingsEntry:
@@ -123,7 +115,7 @@ class XmetroCore:
         ``resources.pose_model_path`` from ``model_dir`` and ``pose_model_dir``. It must take the primary's features
         and be trained for the same scanner; a failure leaves the node judging with the primary alone (logged, on
         /diagnostics)."""
-        from ..inference import ModelSet
+        from ..inference import load_pose_model
         from ..resources import pose_model_path
 
         v = self.values
@@ -132,13 +124,7 @@ class XmetroCore:
         if self.model is None or where is None:
             return None, ""
         try:
-            pm = ModelSet.load(where, threads=int(v["inference_threads"]))
-            if list(pm.feature_names) != list(self.model.feature_names):
-                raise ValueError(f"its features {list(pm.feature_names)} are not the primary model's")
-            if model_scanner_id(pm.card) != model_scanner_id(self.model.card):
-                raise ValueError(f"it was trained for scanner {model_scanner_id(pm.card)!r}, the primary model for "
-                                 f"{model_scanner_id(self.model.card)!r}")
-            return pm, ""
+            return load_pose_model(where, self.model, threads=int(v["inference_threads"])), ""
         except Exception as e:
             msg = f"pose model set unavailable ({path or 'shipped'}): {e}; judging with {self.model.id!r} alone"
             if self.log is not None:
