@@ -46,6 +46,29 @@ def test_verify_recommend_cli(quick_report):
     assert rep["median"]["after_over_best"] == pytest.approx(r["after_over_best"])
 
 
+def test_verify_recommend_refuses_a_pose_model_that_does_not_match(tmp_path, capsys):
+    """A --pose-model for other features or another scanner than the judging model: exit 2 and why, no report
+    (the node's rule: inference.load_pose_model)."""
+    import shutil
+
+    from xmetro_ros.resources import pose_model_dir
+
+    for key, change in (("feature_names", lambda v: list(reversed(v))), ("scanner", lambda v: {"id": "ls-200"})):
+        odd = tmp_path / key
+        shutil.copytree(pose_model_dir(), odd)
+        card = json.loads((odd / "card.json").read_text())
+        card[key] = change(card.get(key))
+        if key == "feature_names":
+            card["feature_units"] = list(reversed(card["feature_units"]))
+        (odd / "card.json").write_text(json.dumps(card))
+        out = tmp_path / f"{key}.json"
+        assert cli.main(["verify-recommend", "--quick", "--regions", "1", "--pose-model", str(odd),
+                         "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert ("not the primary model's" if key == "feature_names" else "trained for scanner 'ls-200'") in err
+        assert not out.exists()
+
+
 def test_verify_recommend_against_all_candidates(tmp_path, quick_report):
     """--against-all keeps the search's recommendation and seeks the actual best among every candidate, those the
     domain check discards included (more candidates, the same "after", a best at least as good)."""

@@ -176,9 +176,15 @@ def run(args: argparse.Namespace) -> int:
     """``xmetro verify-recommend``: follow the recommendation in the virtual scanner; returns the exit code."""
     kw: dict[str, Any] = {"turn_steps": 1} if args.quick else {}
     kw["rank_by"] = args.rank_by
-    rep = verify_regions(args.model, args.radius, max(1, min(args.regions, len(REGIONS))),
-                         against_all=args.against_all, region_set="validation" if args.validation else "test",
-                         pose_model_dir=args.pose_model, **kw)
+    from ..inference import ModelLoadError
+
+    try:
+        rep = verify_regions(args.model, args.radius, max(1, min(args.regions, len(REGIONS))),
+                             against_all=args.against_all, region_set="validation" if args.validation else "test",
+                             pose_model_dir=args.pose_model, **kw)
+    except ModelLoadError as e:  # a missing or unusable model set (e.g. a pose model for other features)
+        print(f"xmetro verify-recommend: {e}", file=sys.stderr)
+        return 2
     text = json.dumps(rep, indent=2)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
