@@ -19,10 +19,11 @@ from typing import Any
 
 import numpy as np
 
+from ..inference import model_scanner_id
+
 __all__ = ["PRIOR_FAMILY", "Prior", "PriorError", "check_prior", "load_prior"]
 
 PRIOR_FAMILY = "pointnet_multi"  # the family a prior warm-starts (the node's default, with the spread head)
-LEGACY_SCANNER_ID = "xm-ls90"  # cards written before 0.2.0 name no scanner: the packaged virtual scanner's
 
 
 class PriorError(ValueError):
@@ -49,7 +50,7 @@ class Prior:
         entry = next(m for m in self.card["models"] if m["family"] == PRIOR_FAMILY)
         return {"model_id": self.card.get("id"), "dir": str(self.dir), "family": PRIOR_FAMILY,
                 "sha256": entry.get("sha256"),
-                "scanner": (self.card.get("scanner") or {}).get("id") or LEGACY_SCANNER_ID,
+                "scanner": model_scanner_id(self.card),
                 "layout": self.layout, "rebuilt_onnx_max_abs_diff_mm": self.onnx_max_abs_diff_mm,
                 "how": "the PointNet starts from the prior's weights and input / target normalisation and is "
                        "fine-tuned on the campaign's training scans (same epochs as from scratch)"}
