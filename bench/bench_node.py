@@ -47,8 +47,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 OUT = ROOT / "bench" / "results" / "node.json"
 
-from xmetro_ros.artifacts import Sphere  # noqa: E402
-from xmetro_ros.scanner import ScanSettings  # noqa: E402
+from xmetro_ros.scan.artifacts import Sphere  # noqa: E402
+from xmetro_ros.scan.scanner import ScanSettings  # noqa: E402
 
 # ~167k valid points, in the model's domain: the highest in-range densities (16 points/mm, as this bench used
 # before, is outside the training range: every point out-of-domain, verdict RESCAN)
@@ -108,9 +108,9 @@ class _GridBackend:
 
 
 def in_process(reps: int, model_dir: str) -> dict:
-    from xmetro_ros import flags as fl
+    from xmetro_ros.judge import flags as fl
     from xmetro_ros.ros.convert import scan_to_cloud, settings_to_msg
-    from xmetro_ros.scan import Scan
+    from xmetro_ros.scan.scan import Scan
 
     core, values = _core(model_dir)
     out: dict = {"model_id": core.model_id, "inference_threads": int(values["inference_threads"]),
@@ -156,8 +156,8 @@ def in_process(reps: int, model_dir: str) -> dict:
 
 def threads(core, scan, reps: int, model_dir: str) -> dict:
     """ONNX Runtime with 1 vs 2 intra-op threads on the scan: predict alone and the whole judge, alternating."""
-    from xmetro_ros.features import FeatureContext, compute_features
-    from xmetro_ros.inference import ModelSet
+    from xmetro_ros.judge.features import FeatureContext, compute_features
+    from xmetro_ros.judge.inference import ModelSet
     from xmetro_ros.preprocess import prepare_scan
     from xmetro_ros.ros.convert import scan_to_cloud
 
@@ -191,11 +191,11 @@ def threads(core, scan, reps: int, model_dir: str) -> dict:
 
 def stages(core, scan, reps: int) -> dict:
     """Median time of each stage of the judge on one scan (same process, measured separately)."""
-    from xmetro_ros.features import FeatureContext, compute_features
-    from xmetro_ros.geometry import point_geometry
+    from xmetro_ros.judge.features import FeatureContext, compute_features
     from xmetro_ros.preprocess import grid_kernels as gk
     from xmetro_ros.preprocess import prepare_scan
     from xmetro_ros.ros.convert import cloud_to_scan, scan_to_cloud
+    from xmetro_ros.scan.geometry import point_geometry
 
     msg = scan_to_cloud(scan)
     h = core.handler

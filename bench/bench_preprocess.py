@@ -21,12 +21,12 @@ from pathlib import Path
 import numpy as np
 
 from xmetro_ros import preprocess as pp
-from xmetro_ros.artifacts import Sphere
-from xmetro_ros.features import STUDY_FEATURES, FeatureContext, compute_features
-from xmetro_ros.geometry import HeadPose
+from xmetro_ros.judge.features import STUDY_FEATURES, FeatureContext, compute_features
 from xmetro_ros.preprocess import knn as pp_knn
-from xmetro_ros.scan import Scan
-from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.scan.artifacts import Sphere
+from xmetro_ros.scan.geometry import HeadPose
+from xmetro_ros.scan.scan import Scan
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
 
 OUT = Path(__file__).resolve().parent / "results" / "preprocess.json"
 

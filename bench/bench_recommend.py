@@ -27,11 +27,11 @@ from pathlib import Path
 
 import numpy as np
 
-from xmetro_ros.artifacts import Sphere
-from xmetro_ros.inference import ModelSet, load_pose_model
-from xmetro_ros.recommend import recommend
-from xmetro_ros.scan_handler import HandlerParams, ScanHandler
-from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.judge.inference import ModelSet, load_pose_model
+from xmetro_ros.judge.scan_handler import HandlerParams, ScanHandler
+from xmetro_ros.plan.recommend import recommend
+from xmetro_ros.scan.artifacts import Sphere
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
 from xmetro_ros.sim import simulate_scan
 
 OUT = Path(__file__).resolve().parent / "results" / "recommend.json"
@@ -39,7 +39,7 @@ N_REGION = 20_000
 
 
 def main() -> None:
-    from xmetro_ros.resources import pose_model_path
+    from xmetro_ros.scan.resources import pose_model_path
 
     scanner = ScannerModel.load()
     custom = os.environ.get("XMETRO_TEST_MODEL_DIR")

@@ -38,10 +38,10 @@ def make_bag(path: Path, n_scans: int, n_points: int, settings_every_scan: bool,
 
     from xmetro_ros.bag import qos_profiles
     from xmetro_ros.bag.writer import BagWriter
-    from xmetro_ros.geometry import HeadPose
     from xmetro_ros.ros.cloud import create_cloud_from_arrays
     from xmetro_ros.ros.convert import ns_to_stamp, settings_to_msg
-    from xmetro_ros.scanner import ScanSettings
+    from xmetro_ros.scan.geometry import HeadPose
+    from xmetro_ros.scan.scanner import ScanSettings
 
     rng = np.random.default_rng(seed)
     t0 = 1_735_689_600_000_000_000

@@ -85,11 +85,11 @@ def main(argv: list[str] | None = None) -> int:
         sim_scan,
     )
 
-    from xmetro_ros.artifacts import Sphere
     from xmetro_ros.ros.convert import ns_to_stamp
     from xmetro_ros.ros.dds_env import fresh_domain_id
     from xmetro_ros.ros.rclpy_util import NodeProcess, NodeSpinner, wait_for
-    from xmetro_ros.scanner import ScanSettings
+    from xmetro_ros.scan.artifacts import Sphere
+    from xmetro_ros.scan.scanner import ScanSettings
     from xmetro_ros.sim import simulate_scan
 
     S = 1_000_000_000

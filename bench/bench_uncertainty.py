@@ -18,12 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-from xmetro_ros.artifacts import Sphere
-from xmetro_ros.dataset import build_table
-from xmetro_ros.features import STUDY_FEATURES
-from xmetro_ros.inference import ModelSet, session_options
-from xmetro_ros.scanner import ScannerModel
-from xmetro_ros.set_kernels import to_sets
+from xmetro_ros.calibrate.dataset import build_table
+from xmetro_ros.judge.features import STUDY_FEATURES
+from xmetro_ros.judge.inference import ModelSet, session_options
+from xmetro_ros.judge.set_kernels import to_sets
+from xmetro_ros.scan.artifacts import Sphere
+from xmetro_ros.scan.scanner import ScannerModel
 from xmetro_ros.sim import simulate_scan
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -81,7 +81,7 @@ def before_after(ms: ModelSet, X: np.ndarray, reps: int) -> dict:
     }
     from threadpoolctl import threadpool_limits
 
-    from xmetro_ros.pointsets import set_order
+    from xmetro_ros.judge.pointsets import set_order
 
     order, pos = set_order(len(X), ms.set_size, ms.partition_seed)
     sets = to_sets(X, pos, order).reshape(-1, ms.set_size, X.shape[1])
@@ -128,7 +128,7 @@ def onnx_variants(ms: ModelSet, X: np.ndarray, reps: int) -> dict:
     with the shipped settings' (a variant that changes a bit is reported and not kept)."""
     import onnxruntime as ort
 
-    from xmetro_ros.pointsets import set_order
+    from xmetro_ros.judge.pointsets import set_order
 
     (member,) = [m for m in ms.members if m.kind == "sets"]
     order, pos = set_order(len(X), ms.set_size, ms.partition_seed)

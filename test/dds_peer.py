@@ -27,11 +27,11 @@ from rclpy.node import Node
 from ros_harness import peer_stop_event, qos
 from sensor_msgs.msg import PointCloud2
 
-from xmetro_ros.geometry import HeadPose
 from xmetro_ros.msg import ScannerSettings, ScanQuality, SettingsCandidate
 from xmetro_ros.ros.convert import ns_to_stamp, settings_to_msg
 from xmetro_ros.ros.rclpy_util import new_context
-from xmetro_ros.scanner import ScanSettings
+from xmetro_ros.scan.geometry import HeadPose
+from xmetro_ros.scan.scanner import ScanSettings
 from xmetro_ros.srv import Explain, RecommendSettings
 
 FEATURES = ("lateral_density", "Inc", "R_y")

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from xmetro_ros.pointsets import partition_sets
+from xmetro_ros.judge.pointsets import partition_sets
 
 SET_CHUNK = 128
 

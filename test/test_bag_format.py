@@ -46,10 +46,10 @@ def _rosbag2_bags() -> Path:
 
 def _our_bag(path: Path) -> Path:
     """A rosbag2 directory as our tools write it: settings + cloud (scan_io) and a node output topic."""
-    from xmetro_ros.geometry import HeadPose
     from xmetro_ros.ros.scan_io import write_scans
-    from xmetro_ros.scan import Scan
-    from xmetro_ros.scanner import ScanSettings
+    from xmetro_ros.scan.geometry import HeadPose
+    from xmetro_ros.scan.scan import Scan
+    from xmetro_ros.scan.scanner import ScanSettings
 
     pts = np.arange(30, dtype=np.float64).reshape(10, 3) + 100.0
     head = HeadPose(np.array([0.0, 0.0, 90.0]), np.eye(3))

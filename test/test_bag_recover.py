@@ -140,10 +140,10 @@ def test_cut_inside_a_chunk(tmp_path: Path, compression: str | None):
 
 def test_recover_keeps_metadata_records_and_attachments(tmp_path: Path):
     """scan_io's bags carry a manifest record and per-scan attachments: a recovered copy reads back identically."""
-    from xmetro_ros.geometry import HeadPose
     from xmetro_ros.ros.scan_io import read_manifest, read_scans, write_scans
-    from xmetro_ros.scan import Scan
-    from xmetro_ros.scanner import ScanSettings
+    from xmetro_ros.scan.geometry import HeadPose
+    from xmetro_ros.scan.scan import Scan
+    from xmetro_ros.scan.scanner import ScanSettings
 
     head = HeadPose(np.array([0.0, 0.0, 90.0]), np.eye(3))
     pts = np.arange(30, dtype=np.float64).reshape(10, 3) + 100.0

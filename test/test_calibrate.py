@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 import yaml
 
-from xmetro_ros.artifacts import Sphere
 from xmetro_ros.bag.writer import BagWriter
-from xmetro_ros.inference import ModelSet
+from xmetro_ros.judge.inference import ModelSet
 from xmetro_ros.ros.convert import scan_to_cloud, settings_to_msg
-from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.scan.artifacts import Sphere
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
 from xmetro_ros.sim import simulate_scan
 
 RANGES = {"lateral_density": [0.5, 100], "direction_density": [0.1, 50], "exposure_ms": [0.005, 50]}

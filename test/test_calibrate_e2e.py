@@ -23,9 +23,9 @@ import pytest
 import yaml
 from test_calibrate import CENTRES, RADIUS, SHEET
 
-from xmetro_ros.artifacts import Sphere
 from xmetro_ros.bag.writer import BagWriter
-from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.scan.artifacts import Sphere
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
 from xmetro_ros.sim import simulate_scan
 
 TIMEOUT = 60.0

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import yaml
 
-from xmetro_ros.artifacts import Sphere
-from xmetro_ros.campaign_data import assemble
-from xmetro_ros.campaign_file import CampaignError, load_campaign
-from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.calibrate.campaign_data import assemble
+from xmetro_ros.calibrate.campaign_file import CampaignError, load_campaign
+from xmetro_ros.calibrate.vdi2634 import probing, summarize
+from xmetro_ros.scan.artifacts import Sphere
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
 from xmetro_ros.sim import simulate_scan
-from xmetro_ros.vdi2634 import probing, summarize
 
 RANGES = {"lateral_density": [0.5, 100], "direction_density": [0.1, 50], "exposure_ms": [0.005, 50]}
 SHEET = {"id": "ls-200", "serial": "SN-7", "measuring_range_mm": [150.0, 250.0], "field_of_view_mm": [100.0, 180.0],
@@ -169,9 +169,9 @@ def test_the_real_atc5_profiles_are_refused_with_the_reason(tmp_path, scanner):
     built on them is refused, scan by scan, because a profile gives no surface normals."""
     from conftest import need_shared, shared_data
 
-    from xmetro_ros.geometry import HeadPose
-    from xmetro_ros.measured import load_atc5
-    from xmetro_ros.scan import Scan
+    from xmetro_ros.scan.geometry import HeadPose
+    from xmetro_ros.scan.measured import load_atc5
+    from xmetro_ros.scan.scan import Scan
 
     profiles = load_atc5(need_shared(shared_data() / "measured" / "atc5_profiler_sphere_r40"))
     xz = profiles[0].xz

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from xmetro_ros.artifacts import Cylinder, Sphere
-from xmetro_ros.recommend import orientation_grid
-from xmetro_ros.scanner import ScannerModel
+from xmetro_ros.scan.artifacts import Cylinder, Sphere
+from xmetro_ros.scan.geometry import orientation_grid
+from xmetro_ros.scan.scanner import ScannerModel
 from xmetro_ros.sim.campaign import campaign_manifest, campaign_pose, pose_grid, study_campaign
 
 SC = ScannerModel.load()

@@ -42,12 +42,12 @@ from hypothesis import strategies as st
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 
-from xmetro_ros import flags as fl
-from xmetro_ros.geometry import HeadPose
+from xmetro_ros.judge import flags as fl
 from xmetro_ros.msg import ScanQuality
 from xmetro_ros.ros import cloud as C
 from xmetro_ros.ros.convert import LENGTH_FIELDS, cloud_to_scan
-from xmetro_ros.scanner import ScanSettings
+from xmetro_ros.scan.geometry import HeadPose
+from xmetro_ros.scan.scanner import ScanSettings
 
 settings.register_profile(
     "xmetro_fuzz", max_examples=400, derandomize=True, deadline=None,

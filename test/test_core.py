@@ -5,10 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from xmetro_ros.artifacts import ArtifactSpecError, Cylinder, Plane, Sphere, artifact_from_dict, parse_artifact
-from xmetro_ros.geometry import HeadPose, matrix_to_quat, point_geometry, quat_to_matrix
-from xmetro_ros.scan import Scan
-from xmetro_ros.scanner import ScannerModel, ScanSettings, SettingsError
+from xmetro_ros.scan.artifact_specs import artifact_from_dict, parse_artifact
+from xmetro_ros.scan.artifacts import ArtifactSpecError, Cylinder, Plane, Sphere
+from xmetro_ros.scan.geometry import HeadPose, matrix_to_quat, point_geometry, quat_to_matrix
+from xmetro_ros.scan.scan import Scan
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings, SettingsError
 
 
 def test_quaternion_round_trip():

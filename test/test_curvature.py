@@ -9,13 +9,13 @@ import shutil
 import numpy as np
 import pytest
 
-from xmetro_ros.artifacts import Cylinder, Plane, Sphere
-from xmetro_ros.inference import ModelSet
+from xmetro_ros.judge.inference import ModelSet
+from xmetro_ros.judge.scan_handler import ScanHandler
 from xmetro_ros.preprocess import prepare_scan
 from xmetro_ros.preprocess.curvature import grid_mean_curvature, mean_curvature
-from xmetro_ros.resources import default_model_dir
-from xmetro_ros.scan_handler import ScanHandler
-from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.scan.artifacts import Cylinder, Plane, Sphere
+from xmetro_ros.scan.resources import default_model_dir
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
 from xmetro_ros.sim import simulate_scan
 
 SC = ScannerModel.load()
@@ -45,9 +45,9 @@ def test_concave_and_sharp_shapes_and_unorganized_scans() -> None:
     """The bowl's pocket reads concave (negative), the step's edges far outside any training sphere; an unorganized
     scan gets NaN (not checked)."""
     pytest.importorskip("open3d")
-    from xmetro_ros.parts import make_part
-    from xmetro_ros.parts_study import PRESENTATION, label_cad_regions
-    from xmetro_ros.regions import REGIONS
+    from xmetro_ros.parts.regions import REGIONS
+    from xmetro_ros.parts.study import PRESENTATION, label_cad_regions
+    from xmetro_ros.scan.generated_parts import make_part
 
     for name in ("bowl", "step"):
         prep, c = _curv(make_part(name).transformed(PRESENTATION))
@@ -67,8 +67,8 @@ def test_shape_domain_flags_what_training_never_saw(tmp_path) -> None:
     block from its calibration clouds."""
     pytest.importorskip("open3d")
     from xmetro_ros.apps.train import _calibrate_default
-    from xmetro_ros.parts import make_part
-    from xmetro_ros.parts_study import PRESENTATION
+    from xmetro_ros.parts.study import PRESENTATION
+    from xmetro_ros.scan.generated_parts import make_part
 
     ms = ModelSet.load()
     lo, hi, radius = ms.shape_domain

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from xmetro_ros import dataset as D
-from xmetro_ros.artifacts import Cylinder, Sphere
-from xmetro_ros.features import STUDY_FEATURES
-from xmetro_ros.geometry import HeadPose
-from xmetro_ros.scan import Scan
-from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.calibrate import dataset as D
+from xmetro_ros.judge.features import STUDY_FEATURES
+from xmetro_ros.scan.artifacts import Cylinder, Sphere
+from xmetro_ros.scan.geometry import HeadPose
+from xmetro_ros.scan.scan import Scan
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
 
 
 def grid_scan(art, settings: ScanSettings, h: int = 50, w: int = 60, shift: float = 0.0) -> Scan:
@@ -99,7 +99,7 @@ def test_bad_inputs(scanner):
         D.build_table([], STUDY_FEATURES, scanner=scanner)
     with pytest.raises(D.DatasetError, match="no feature"):
         D.build_table([s], [], scanner=scanner)
-    from xmetro_ros.features import UnknownFeatureError
+    from xmetro_ros.judge.features import UnknownFeatureError
 
     with pytest.raises(UnknownFeatureError):
         D.build_table([s], ["N_x", "nope"], scanner=scanner)

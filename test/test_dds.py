@@ -16,12 +16,12 @@ from ros_harness import ROOT, Inbox, PeerProcess, publish_until, qos, spin_node
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 
-from xmetro_ros.geometry import HeadPose
 from xmetro_ros.msg import ScannerSettings, ScanQuality
 from xmetro_ros.ros.cloud import create_cloud_from_arrays, xyz_fields
 from xmetro_ros.ros.convert import ns_to_stamp, settings_from_msg, settings_to_msg, stamp_to_ns
 from xmetro_ros.ros.rclpy_util import call_service
-from xmetro_ros.scanner import ScanSettings
+from xmetro_ros.scan.geometry import HeadPose
+from xmetro_ros.scan.scanner import ScanSettings
 from xmetro_ros.srv import Explain, RecommendSettings
 
 NS = "/xm_peer"

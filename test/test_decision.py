@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from xmetro_ros.flags import CONFORMING, NON_CONFORMING, UNDECIDED, decision_classes
+from xmetro_ros.judge.flags import CONFORMING, NON_CONFORMING, UNDECIDED, decision_classes
 
 
 def test_guard_banded_classes_and_edges():

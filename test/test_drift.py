@@ -1,4 +1,5 @@
-"""Drift detection on reference scans (xmetro_ros.drift, ROS-free): simulated reference scans of a sphere judged by a
+"""Drift detection on reference scans (xmetro_ros.monitor.drift, ROS-free): simulated reference scans of a sphere
+judged by a
 model trained without any undeclared effect; a scanner that starts drifting mid-stream (an undeclared distortion
 along the laser line switched on) raises WARN within 3 reference scans; stable streams of the same length stay OK
 (false-alarm rate measured over many streams drawn from simulated stable scans)."""
@@ -9,9 +10,9 @@ import numpy as np
 import pytest
 from test_loop import sim_scan
 
-from xmetro_ros.drift import DriftConfig, DriftMonitor, scan_statistics
 from xmetro_ros.loop.inputs import from_scans
 from xmetro_ros.loop.model import GivenModel, fit_family
+from xmetro_ros.monitor.drift import DriftConfig, DriftMonitor, scan_statistics
 
 STREAM = 60  # reference scans per stream
 SWITCH = 30  # the effect is switched on after this many reference scans

@@ -7,12 +7,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from xmetro_ros.artifacts import Sphere
-from xmetro_ros.attribution import explain, explain_in_cloud
-from xmetro_ros.features import FeatureContext, compute_features
-from xmetro_ros.inference import ModelSet
+from xmetro_ros.judge.attribution import explain, explain_in_cloud
+from xmetro_ros.judge.features import FeatureContext, compute_features
+from xmetro_ros.judge.inference import ModelSet
 from xmetro_ros.preprocess import PreprocessConfig, prepare_scan
-from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.scan.artifacts import Sphere
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
 from xmetro_ros.sim import simulate_scan
 
 

@@ -9,7 +9,7 @@ import json
 import pytest
 
 from xmetro_ros.apps.cli import main
-from xmetro_ros.resources import default_model_dir
+from xmetro_ros.scan.resources import default_model_dir
 
 
 def _digest(d) -> str:

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from xmetro_ros import features as F
-from xmetro_ros.artifacts import Sphere
-from xmetro_ros.geometry import HeadPose, point_geometry
+from xmetro_ros.judge import features as F
 from xmetro_ros.preprocess import Prepared, prepare_scan
-from xmetro_ros.scan import Scan
-from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.scan.artifacts import Sphere
+from xmetro_ros.scan.geometry import HeadPose, point_geometry
+from xmetro_ros.scan.scan import Scan
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
 
 S = ScanSettings(6.0, 3.0, 0.1)
 

@@ -174,11 +174,11 @@ def test_fleet_cli_existing_cluster_by_address(fleet_dir, single, tmp_path, caps
 def test_build_table_dask_equals_build_table(client):
     from test_dataset import grid_scan
 
-    from xmetro_ros import dataset as D
-    from xmetro_ros.artifacts import Cylinder, Sphere
-    from xmetro_ros.dataset_dask import ScanList, build_table_dask
-    from xmetro_ros.features import STUDY_FEATURES
-    from xmetro_ros.scanner import ScanSettings
+    from xmetro_ros.calibrate import dataset as D
+    from xmetro_ros.calibrate.dataset_dask import ScanList, build_table_dask
+    from xmetro_ros.judge.features import STUDY_FEATURES
+    from xmetro_ros.scan.artifacts import Cylinder, Sphere
+    from xmetro_ros.scan.scanner import ScanSettings
 
     scans = [grid_scan(Sphere(20.0), ScanSettings(6, 3, 0.1)),
              grid_scan(Sphere(20.0), ScanSettings(10, 4, 0.5), shift=0.05),
@@ -212,10 +212,10 @@ def test_train_data_from_bags_via_scheduler_address(client, tmp_path):
     from test_dataset import grid_scan
 
     from xmetro_ros.apps.train import _load_data_dask, _read_data
-    from xmetro_ros.artifacts import Cylinder, Sphere
     from xmetro_ros.learn.study import load_data
     from xmetro_ros.ros.scan_io import write_scans
-    from xmetro_ros.scanner import ScanSettings
+    from xmetro_ros.scan.artifacts import Cylinder, Sphere
+    from xmetro_ros.scan.scanner import ScanSettings
 
     scans = [grid_scan(Sphere(20.0), ScanSettings(6, 3, 0.1)), grid_scan(Cylinder(15.0), ScanSettings(15, 5, 2.0)),
              grid_scan(Sphere(25.0), ScanSettings(10, 4, 0.5), shift=0.05)]

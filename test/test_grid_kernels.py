@@ -11,11 +11,11 @@ import pytest
 from scipy import ndimage
 
 from xmetro_ros import preprocess as pp
-from xmetro_ros.artifacts import Cylinder, Plane, Sphere
 from xmetro_ros.preprocess import grid as pp_grid
 from xmetro_ros.preprocess import grid_kernels as gk
 from xmetro_ros.preprocess import points as pp_points
-from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.scan.artifacts import Cylinder, Plane, Sphere
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
 from xmetro_ros.sim import simulate_scan
 
 

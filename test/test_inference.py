@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from test_learn_synth import NAMES, synth_table
 
-from xmetro_ros.inference import ModelLoadError, ModelSet
+from xmetro_ros.judge.inference import ModelLoadError, ModelSet
 from xmetro_ros.learn.families import get_profile
 from xmetro_ros.learn.pointnet import partition_sets
 from xmetro_ros.learn.train import export_model_set, fit_model
@@ -131,7 +131,7 @@ def _edit_card(model_dir, edit) -> None:
 
 
 def test_features_checked_against_the_registry(trained, tmp_path):
-    from xmetro_ros.features import REGISTRY
+    from xmetro_ros.judge.features import REGISTRY
 
     _, _, _, dt_dir = trained
     ms = ModelSet.load(dt_dir)
@@ -162,7 +162,7 @@ def test_explain_in_cloud_explains_the_published_predictions(trained):
     """For a PointNet set model, base + Σ SHAP (features + the set-context player) equals the prediction that
     ``predict`` gives the point inside the whole cloud (its own set of 50), not the prediction of the explained rows
     as a cloud of their own; for a point-wise model there is no context player and the same equality holds."""
-    from xmetro_ros.attribution import SET_CONTEXT, explain, explain_in_cloud
+    from xmetro_ros.judge.attribution import SET_CONTEXT, explain, explain_in_cloud
 
     t, _, pn_dir, dt_dir = trained
     X = np.resize(t.X, (1200, 14)) + np.random.default_rng(3).normal(0, 0.05, (1200, 14)).astype(np.float32)
@@ -200,11 +200,11 @@ def test_node_processing_path_never_imports_torch():
     code = (
         "import sys, numpy as np\n"
         "import xmetro_ros.ros.node\n"
-        "from xmetro_ros.artifacts import Sphere\n"
-        "from xmetro_ros.scan_history import JudgedScan, explain_rows\n"
-        "from xmetro_ros.inference import ModelSet\n"
-        "from xmetro_ros.scan_handler import HandlerParams, ScanHandler\n"
-        "from xmetro_ros.scanner import ScannerModel, ScanSettings\n"
+        "from xmetro_ros.scan.artifacts import Sphere\n"
+        "from xmetro_ros.judge.scan_history import JudgedScan, explain_rows\n"
+        "from xmetro_ros.judge.inference import ModelSet\n"
+        "from xmetro_ros.judge.scan_handler import HandlerParams, ScanHandler\n"
+        "from xmetro_ros.scan.scanner import ScannerModel, ScanSettings\n"
         "from xmetro_ros.sim import simulate_scan\n"
         "scan = simulate_scan(Sphere(radius=17.5), ScanSettings(6.0, 3.0, 0.5), seed=1)\n"
         "m = ModelSet.load()\n"

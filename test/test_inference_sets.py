@@ -12,10 +12,10 @@ import reference_inference as ref
 from test_learn_synth import NAMES, synth_table
 from threadpoolctl import threadpool_limits
 
-from xmetro_ros.inference import ModelSet
+from xmetro_ros.judge.inference import ModelSet
+from xmetro_ros.judge.pointsets import partition_sets, set_order
 from xmetro_ros.learn.families import get_profile
 from xmetro_ros.learn.train import export_model_set, fit_model
-from xmetro_ros.pointsets import partition_sets, set_order
 
 SIZES = (1, 49, 50, 51, 137, 6400, 6449)  # 6400 = 128 sets: one full ONNX chunk; others pad the last set
 

@@ -1,11 +1,10 @@
-"""The package's layers, enforced (docs/architecture.md, "Layers").
+"""The ROS boundary, enforced (docs/architecture.md, "Layers"); which package may import which is
+test/test_import_graph.py's, from the packages' docstrings.
 
 - core: every module of ``xmetro_ros`` outside ``ros/``, ``apps/``, ``msg/`` and ``srv/``: no ROS at all (no rclpy,
   no message packages, no ``xmetro_ros.ros`` / ``apps`` / ``msg`` / ``srv``), not even inside a function; the one
   exception is ``bag/codec.py`` (message objects ⇄ CDR with ``rclpy.serialization``, imported on demand).
-- ``ros/``: ROS message types and DDS; may use the core, never ``apps/`` nor ``learn/`` (the node must not pull the
-  training stack).
-- ``apps/``: the command-line tools; may use both.
+- ``ros/``: ROS message types and DDS; ``apps/``: the command-line tools.
 
 Checked statically (every import statement, at any depth, relative ones resolved) and at run time (a fresh
 interpreter that imports every core module has no ROS module loaded; ``xmetro predict`` runs without DDS).
@@ -87,8 +86,6 @@ def _violations() -> list[str]:
                 allowed = CORE_EXCEPTIONS.get(rel, ())
                 if (_is_ros(name) and not name.startswith(allowed)) or inner in (*LAYERS, *GENERATED):
                     bad.append(f"core {where}")
-            elif layer == "ros" and inner in ("apps", "learn"):
-                bad.append(f"ros {where}")
     return bad
 
 
@@ -97,20 +94,18 @@ def test_core_imports_no_ros_and_ros_no_tools():
 
 
 def test_layer_check_catches_a_violation(tmp_path, monkeypatch):
-    """The check is real: a core module importing rclpy inside a function, or the node layer importing learn/,
-    is reported."""
+    """The check is real: a core module importing rclpy inside a function, or the ROS layer, is reported."""
     fake = tmp_path / "xmetro_ros"
     (fake / "ros").mkdir(parents=True)
     (fake / "__init__.py").write_text("")
     (fake / "ros" / "__init__.py").write_text("")
-    (fake / "geometry.py").write_text("def f():\n    from rclpy.node import Node\n    return Node\n")
-    (fake / "ros" / "node.py").write_text("from ..learn import train\n")
+    (fake / "scan").mkdir()
+    (fake / "scan" / "geometry.py").write_text("def f():\n    from rclpy.node import Node\n    return Node\n")
     (fake / "features.py").write_text("from .ros import cloud\n")
     monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
     monkeypatch.setattr(sys.modules[__name__], "PKG", fake)
     found = _violations()
-    assert any(v.startswith("core geometry.py:2 imports rclpy.node") for v in found), found
-    assert any(v.startswith("ros ros/node.py:1 imports xmetro_ros.learn") for v in found), found
+    assert any(v.startswith("core scan/geometry.py:2 imports rclpy.node") for v in found), found
     assert any(v.startswith("core features.py:1 imports xmetro_ros.ros") for v in found), found
 
 

@@ -9,8 +9,8 @@ import onnxruntime as ort
 import pytest
 from test_learn_synth import NAMES, synth_table
 
-from xmetro_ros.attribution import explain, global_ranking
-from xmetro_ros.inference import ModelSet
+from xmetro_ros.judge.attribution import explain, global_ranking
+from xmetro_ros.judge.inference import ModelSet
 from xmetro_ros.learn.families import UnknownFamilyError, get_profile
 from xmetro_ros.learn.pointnet import partition_sets, sets_by_group
 from xmetro_ros.learn.protocol import cloud_split, config_keys, study_split
@@ -181,8 +181,8 @@ def test_shap_truth_on_the_simulator(tmp_path):
     with it off. CatBoost (fixed hyper-parameters)
     explained through its ONNX model set; targets are the simulator's noise-free expected error, so the check is
     about model + explainer, not the noise."""
-    from xmetro_ros.dataset import build_table
-    from xmetro_ros.features import STUDY_FEATURES
+    from xmetro_ros.calibrate.dataset import build_table
+    from xmetro_ros.judge.features import STUDY_FEATURES
 
     names = list(STUDY_FEATURES)
     from xmetro_ros.sim.campaign import study_campaign

@@ -6,7 +6,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from xmetro_ros.features import STUDY_FEATURES
+from xmetro_ros.judge.features import STUDY_FEATURES
 
 NAMES = list(STUDY_FEATURES)
 

@@ -16,9 +16,9 @@ from rclpy.qos import ReliabilityPolicy
 from test_node_helpers import TIMEOUT, NodeClient, cloud_of, settings_msg, sim_scan
 
 from xmetro_ros.msg import ScanQuality
-from xmetro_ros.resources import default_model_dir
 from xmetro_ros.ros.lifecycle_node import XmetroLifecycleNode
 from xmetro_ros.ros.rclpy_util import NodeSpinner, call_service, wait_for
+from xmetro_ros.scan.resources import default_model_dir
 
 S = 1_000_000_000
 NAME = "xmetro_managed"

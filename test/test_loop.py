@@ -9,8 +9,6 @@ import numpy as np
 import pytest
 from conftest import need_shared
 
-from xmetro_ros.artifacts import ArtifactSpecError, Sphere
-from xmetro_ros.geometry import HeadPose, unit
 from xmetro_ros.loop.candidates import build_candidates
 from xmetro_ros.loop.data import LoopInputError
 from xmetro_ros.loop.inputs import from_scans, load_inputs
@@ -18,8 +16,10 @@ from xmetro_ros.loop.model import GivenModel, fit_family
 from xmetro_ros.loop.run import LoopConfig, run_loop
 from xmetro_ros.loop.trace import TraceConfig, holm
 from xmetro_ros.ros.scan_io import read_scans
-from xmetro_ros.scan import Scan
-from xmetro_ros.scanner import ScanSettings
+from xmetro_ros.scan.artifacts import ArtifactSpecError, Sphere
+from xmetro_ros.scan.geometry import HeadPose, unit
+from xmetro_ros.scan.scan import Scan
+from xmetro_ros.scan.scanner import ScanSettings
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 VIB_PERIOD_S = 0.2 / 6  # a scan of 40 profiles at 200 profiles/s lasts 0.2 s: 6 periods per scan
@@ -218,7 +218,7 @@ def test_loop_reports_none_without_effect(clean_model, tmp_path):
 
 
 def test_exported_model_lists_field_feature(clean_model, tmp_path):
-    from xmetro_ros.inference import ModelSet
+    from xmetro_ros.judge.inference import ModelSet
     from xmetro_ros.loop.export import export_loop_model
 
     data, res = _loop("intensity", 0.03, 1, max_iter=1, given=clean_model)

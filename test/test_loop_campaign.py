@@ -13,13 +13,13 @@ import pytest
 import yaml
 from test_loop import sim_scan
 
-from xmetro_ros.campaign_file import CampaignError
+from xmetro_ros.calibrate.campaign_file import CampaignError
 from xmetro_ros.loop.candidates import POSITION_LIKE
 from xmetro_ros.loop.inputs import from_campaign, from_scans
 from xmetro_ros.loop.model import GivenModel, fit_family
 from xmetro_ros.loop.run import LoopConfig, run_loop
 from xmetro_ros.loop.trace import TraceConfig
-from xmetro_ros.scanner import ScannerModel
+from xmetro_ros.scan.scanner import ScannerModel
 
 ROOT = Path(__file__).resolve().parents[1]
 SEEDS = range(500, 510)

@@ -11,9 +11,9 @@ import pytest
 from test_loop import _cli, sim_scan
 
 from xmetro_ros.apps import fleet
-from xmetro_ros.dataset_dask import load_inputs_dask
 from xmetro_ros.loop.data import LoopData, LoopInputError
 from xmetro_ros.loop.inputs import load_inputs
+from xmetro_ros.loop.inputs_dask import load_inputs_dask
 from xmetro_ros.ros.scan_io import iter_scans, read_scans, write_scans
 
 pytestmark = pytest.mark.timeout(120)

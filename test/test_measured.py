@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from conftest import need_shared
 
-from xmetro_ros import measured as M
-from xmetro_ros.fitting import fit_circle_2d
+from xmetro_ros.scan import measured as M
+from xmetro_ros.scan.fitting import fit_circle_2d
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "measured"
 NIST = DATA / "nist_tls_spheres_r50"

@@ -8,11 +8,12 @@ import pytest
 
 pytest.importorskip("open3d")
 
-from xmetro_ros.artifacts import Cylinder, Sphere, artifact_from_dict
-from xmetro_ros.mesh import MeshArtifact, closest_on_triangles, read_mesh, write_ply, write_stl
-from xmetro_ros.parts import form_field, make_part
-from xmetro_ros.regions import REGIONS, label_regions
-from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.parts.regions import REGIONS, label_regions
+from xmetro_ros.scan.artifact_specs import artifact_from_dict
+from xmetro_ros.scan.artifacts import Cylinder, Sphere
+from xmetro_ros.scan.generated_parts import form_field, make_part
+from xmetro_ros.scan.mesh import MeshArtifact, closest_on_triangles, read_mesh, write_ply, write_stl
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
 from xmetro_ros.sim import simulate_scan
 
 UM = 1e-3
@@ -173,7 +174,7 @@ def test_region_labels_on_parts() -> None:
 
 
 def test_icp_recovers_the_pose_with_its_uncertainty() -> None:
-    from xmetro_ros.registration import perturbed, register_to_cad
+    from xmetro_ros.parts.registration import perturbed, register_to_cad
 
     cad = make_part("blade")
     pose = perturbed(np.eye(4), np.array([0.4, 0.2, 0.0]), np.array([0.0, 0.0, 4.0]))
@@ -203,9 +204,10 @@ def test_recommend_coverage_sees_occlusion_by_the_part() -> None:
     """The recommender's coverage with the part's CAD as occluder: floor points just in front of the step's rising
     wall, seen now, are hidden from the camera by the wall under some of the search's head orientations — which
     the angle-only coverage cannot know."""
-    from xmetro_ros.features import FeatureContext
+    from xmetro_ros.judge.features import FeatureContext
+    from xmetro_ros.plan.recommend import coverage_mask
     from xmetro_ros.preprocess import prepare_scan
-    from xmetro_ros.recommend import coverage_mask, orientation_grid
+    from xmetro_ros.scan.geometry import orientation_grid
 
     part = make_part("step")
     scanner = ScannerModel.load()

@@ -10,11 +10,11 @@ import pytest
 
 pytest.importorskip("open3d")
 
-from xmetro_ros.inference import ModelSet
-from xmetro_ros.parts import make_part
-from xmetro_ros.parts_study import PRESENTATION, evaluate_part
-from xmetro_ros.scan_handler import ScanHandler
-from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.judge.inference import ModelSet
+from xmetro_ros.judge.scan_handler import ScanHandler
+from xmetro_ros.parts.study import PRESENTATION, evaluate_part
+from xmetro_ros.scan.generated_parts import make_part
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
 from xmetro_ros.sim import simulate_scan
 
 
@@ -52,9 +52,9 @@ def test_predict_cad_offline(tmp_path, handler: ScanHandler) -> None:
     """`xmetro predict BAG --out OUT --cad PART.stl --cad-pose ...`: the report's maps are those of cad_deviation on
     the same judged scan (through the node's core and its ~/deviations cloud, float32 metres)."""
     from xmetro_ros.apps.cli import main
-    from xmetro_ros.cad_judge import cad_deviation
-    from xmetro_ros.mesh import write_stl
+    from xmetro_ros.parts.cad_judge import cad_deviation
     from xmetro_ros.ros.scan_io import write_scans
+    from xmetro_ros.scan.mesh import write_stl
 
     cad = make_part("step")
     stl = write_stl(tmp_path / "step.stl", cad.vertices, cad.triangles)

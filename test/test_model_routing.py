@@ -12,14 +12,13 @@ import shutil
 import numpy as np
 import pytest
 
-from xmetro_ros import flags as fl
-from xmetro_ros.artifacts import Sphere
-from xmetro_ros.geometry import HeadPose
-from xmetro_ros.inference import ModelSet
-from xmetro_ros.recommend import rotation_xyz
-from xmetro_ros.resources import default_model_dir, pose_model_dir
-from xmetro_ros.scan_handler import ROUTE_MAX_OUT_OF_DOMAIN, HandlerParams, ScanHandler
-from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.judge import flags as fl
+from xmetro_ros.judge.inference import ModelSet
+from xmetro_ros.judge.scan_handler import ROUTE_MAX_OUT_OF_DOMAIN, HandlerParams, ScanHandler
+from xmetro_ros.scan.artifacts import Sphere
+from xmetro_ros.scan.geometry import HeadPose, rotation_xyz
+from xmetro_ros.scan.resources import default_model_dir, pose_model_dir
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
 from xmetro_ros.sim import simulate_scan
 
 
@@ -76,8 +75,8 @@ def test_a_looking_down_part_stays_with_the_primary(models):
     """A part scanned looking down (the step, presented as in the parts study) lies partly outside the primary's
     domain — and less outside the pose model's — but its head orientation is the primary's: it stays with the
     primary, whose figures on the parts are the documented ones (docs/parts.md)."""
-    from xmetro_ros.parts import make_part
-    from xmetro_ros.parts_study import PRESENTATION
+    from xmetro_ros.parts.study import PRESENTATION
+    from xmetro_ros.scan.generated_parts import make_part
 
     primary, pose = models
     scanner = ScannerModel.load()

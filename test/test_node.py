@@ -24,16 +24,16 @@ from test_node_helpers import (
     stamp_ns_of,
 )
 
-from xmetro_ros import flags as fl
-from xmetro_ros.inference import ModelSet
+from xmetro_ros.judge import flags as fl
+from xmetro_ros.judge.inference import ModelSet
+from xmetro_ros.judge.scan_handler import ScanHandler
 from xmetro_ros.msg import ScanQuality
 from xmetro_ros.ros.cloud import xyz_fields
 from xmetro_ros.ros.convert import cloud_to_scan, ns_to_stamp
 from xmetro_ros.ros.node import XmetroNode
 from xmetro_ros.ros.params import handler_params
 from xmetro_ros.ros.rclpy_util import NodeSpinner, call_service, wait_for
-from xmetro_ros.scan_handler import ScanHandler
-from xmetro_ros.scanner import ScannerModel
+from xmetro_ros.scan.scanner import ScannerModel
 from xmetro_ros.srv import Explain, RecommendSettings
 
 S = 1_000_000_000  # ns per second

@@ -18,15 +18,15 @@ from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import PointCloud2
 from test_node_helpers import TIMEOUT, NodeClient, cloud_of, settings_msg
 
-from xmetro_ros.cad_judge import cad_deviation
-from xmetro_ros.mesh import write_stl
 from xmetro_ros.msg import ScanQuality
-from xmetro_ros.parts import make_part
-from xmetro_ros.parts_study import PRESENTATION
+from xmetro_ros.parts.cad_judge import cad_deviation
+from xmetro_ros.parts.study import PRESENTATION
 from xmetro_ros.ros.node import XmetroNode
 from xmetro_ros.ros.node_outputs import cloud_arrays, deviation_arrays
 from xmetro_ros.ros.rclpy_util import NodeSpinner, wait_for
-from xmetro_ros.scanner import ScanSettings
+from xmetro_ros.scan.generated_parts import make_part
+from xmetro_ros.scan.mesh import write_stl
+from xmetro_ros.scan.scanner import ScanSettings
 from xmetro_ros.sim import simulate_scan
 
 S = 1_000_000_000
@@ -161,12 +161,13 @@ def test_recommend_counts_the_parts_self_occlusion(step, monkeypatch) -> None:
     occluder; for a region of the floor just in front of the step's rising wall, the coverage the search then gives
     each orientation is the re-simulated one (the virtual scanner rescans the part at that orientation: which of the
     region's points come back), where the angle-only coverage of a node without CAD claims points the wall hides."""
-    import xmetro_ros.recommend as rec_mod
-    from xmetro_ros.recommend import coverage_mask, orientation_grid
-    from xmetro_ros.resim import GroundTruth, Region, resimulate
+    import xmetro_ros.plan.recommend as rec_mod
+    from xmetro_ros.plan.recommend import coverage_mask
+    from xmetro_ros.plan.resim import GroundTruth, Region, resimulate
     from xmetro_ros.ros.convert import ns_to_stamp
     from xmetro_ros.ros.core import XmetroCore
     from xmetro_ros.ros.params import PARAMS
+    from xmetro_ros.scan.geometry import orientation_grid
     from xmetro_ros.srv import RecommendSettings
 
     cad, stl, man = step

@@ -15,11 +15,11 @@ from rclpy.parameter import Parameter
 from test_node_helpers import TIMEOUT, NodeClient, cloud_of, settings_msg, sim_scan
 
 from xmetro_ros.msg import ScanQuality
-from xmetro_ros.resources import default_model_dir, repo_root
 from xmetro_ros.ros.convert import scan_to_cloud
 from xmetro_ros.ros.dds_env import fresh_domain_id
 from xmetro_ros.ros.node import XmetroNode
 from xmetro_ros.ros.rclpy_util import NodeProcess, NodeSpinner, call_service, wait_for
+from xmetro_ros.scan.resources import default_model_dir, repo_root
 from xmetro_ros.srv import Explain, RecommendSettings
 
 S = 1_000_000_000
@@ -147,9 +147,9 @@ def test_a_model_for_another_scanner_is_refused_unless_allowed(tmp_path):
     import json
     import shutil
 
-    from xmetro_ros.resources import default_model_dir
     from xmetro_ros.ros.core import XmetroCore, model_scanner_id
     from xmetro_ros.ros.params import PARAMS
+    from xmetro_ros.scan.resources import default_model_dir
 
     model = tmp_path / "model"
     shutil.copytree(default_model_dir(), model)

@@ -14,14 +14,14 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2, PointField
 
-from xmetro_ros import flags as fl
-from xmetro_ros.artifacts import Sphere
-from xmetro_ros.geometry import HeadPose
+from xmetro_ros.judge import flags as fl
 from xmetro_ros.msg import ScannerSettings, ScanQuality
 from xmetro_ros.ros.convert import ns_to_stamp, scan_to_cloud, settings_to_msg
 from xmetro_ros.ros.rclpy_util import wait_for
-from xmetro_ros.scan import Scan
-from xmetro_ros.scanner import ScanSettings
+from xmetro_ros.scan.artifacts import Sphere
+from xmetro_ros.scan.geometry import HeadPose
+from xmetro_ros.scan.scan import Scan
+from xmetro_ros.scan.scanner import ScanSettings
 from xmetro_ros.sim import simulate_scan
 
 SETTINGS = ScanSettings(6.0, 3.0, 0.5)
@@ -210,7 +210,8 @@ class NodeClient:
         return find()
 
 
-#: Flags that say why a point has no prediction (xmetro_ros.flags): no return, removed as an outlier, non-physical.
+#: Flags that say why a point has no prediction (xmetro_ros.judge.flags): no return, removed as an outlier,
+# non-physical.
 NO_PREDICTION_FLAGS = fl.FLAG_INVALID_POINT | fl.FLAG_OUTLIER | fl.FLAG_OUT_OF_VOLUME
 #: Flags that say why a point has no uncertainty U: no prediction at all, or a prediction without a finite U.
 NO_UNCERTAINTY_FLAGS = NO_PREDICTION_FLAGS | fl.FLAG_NO_UNCERTAINTY

@@ -20,11 +20,11 @@ from std_srvs.srv import Trigger
 from test_node_helpers import TIMEOUT, NodeClient, settings_msg
 from test_reference_check import CENTER, RADIUS, SETTINGS, SWITCH, TILT, reference_scan
 
-from xmetro_ros.artifacts import Sphere
 from xmetro_ros.msg import ReferenceCheck
 from xmetro_ros.ros.convert import scan_to_cloud
 from xmetro_ros.ros.node import XmetroNode
 from xmetro_ros.ros.rclpy_util import NodeSpinner, call_service, wait_for
+from xmetro_ros.scan.artifacts import Sphere
 from xmetro_ros.sim import simulate_scan
 
 S = 1_000_000_000

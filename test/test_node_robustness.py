@@ -28,7 +28,7 @@ from test_node_helpers import (
     stamp_ns_of,
 )
 
-from xmetro_ros import flags as fl
+from xmetro_ros.judge import flags as fl
 from xmetro_ros.msg import ScanQuality
 from xmetro_ros.ros.cloud import xyz_fields
 from xmetro_ros.ros.convert import ns_to_stamp

@@ -15,16 +15,16 @@ from scipy.stats import spearmanr
 from sensor_msgs.msg import PointField
 from test_node_helpers import SETTINGS, TIMEOUT, NodeClient, cloud_of, settings_msg
 
-from xmetro_ros import flags as fl
-from xmetro_ros.artifacts import Sphere
-from xmetro_ros.geometry import HeadPose
+from xmetro_ros.judge import flags as fl
 from xmetro_ros.msg import ScanQuality
 from xmetro_ros.ros.cloud import xyz_fields
 from xmetro_ros.ros.node import XmetroNode
 from xmetro_ros.ros.rclpy_util import NodeSpinner, call_service, wait_for
+from xmetro_ros.scan.artifacts import Sphere
+from xmetro_ros.scan.geometry import HeadPose
+from xmetro_ros.scan.targets import point_errors
 from xmetro_ros.sim import simulate_scan
 from xmetro_ros.srv import Explain
-from xmetro_ros.targets import point_errors
 
 S = 1_000_000_000
 RADIUS = 20.0  # Ø40 sphere: an artifact the default model was neither trained nor calibrated on
@@ -203,11 +203,11 @@ def test_scan_at_a_searched_orientation_is_judged_by_the_pose_model(rig):
     primary model's domain and inside the shipped pose model's: ScanQuality names the pose model, the published
     deviations and U are its own judgement of the scan (ScanHandler with that model alone), ~/explain explains them
     with it, and ~/recommend_settings searches with it. A looking-down scan stays with the primary."""
-    from xmetro_ros.inference import ModelSet
-    from xmetro_ros.recommend import rotation_xyz
-    from xmetro_ros.resources import pose_model_dir
-    from xmetro_ros.scan_handler import HandlerParams, ScanHandler
-    from xmetro_ros.scanner import ScannerModel
+    from xmetro_ros.judge.inference import ModelSet
+    from xmetro_ros.judge.scan_handler import HandlerParams, ScanHandler
+    from xmetro_ros.scan.geometry import rotation_xyz
+    from xmetro_ros.scan.resources import pose_model_dir
+    from xmetro_ros.scan.scanner import ScannerModel
     from xmetro_ros.srv import RecommendSettings
 
     if os.environ.get("XMETRO_TEST_MODEL_DIR"):
@@ -292,9 +292,9 @@ def test_uncalibrated_model_set_publishes_nan_U_with_the_reason(tmp_path):
     import json
     import shutil
 
-    from xmetro_ros.resources import default_model_dir
     from xmetro_ros.ros.core import XmetroCore
     from xmetro_ros.ros.params import PARAMS
+    from xmetro_ros.scan.resources import default_model_dir
 
     d = tmp_path / "uncalibrated"
     shutil.copytree(os.environ.get("XMETRO_TEST_MODEL_DIR") or default_model_dir(), d)
@@ -333,7 +333,7 @@ def test_guard_banded_classes_all_occur_through_a_node_with_a_sharp_model(tmp_pa
 
     from rclpy.node import Node
 
-    from xmetro_ros.resources import default_model_dir
+    from xmetro_ros.scan.resources import default_model_dir
 
     d = tmp_path / "sharp"
     shutil.copytree(os.environ.get("XMETRO_TEST_MODEL_DIR") or default_model_dir(), d)

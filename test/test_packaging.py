@@ -148,7 +148,7 @@ def test_colcon_install_finds_config_and_model_and_starts_renamed_node(tmp_path:
         assert (share / rel).is_file(), rel
     assert (prefix / "share" / "ament_index" / "resource_index" / "packages" / "xmetro_ros").is_file()
     assert (prefix / "lib" / "xmetro_ros" / "xmetro_node").is_file()
-    assert (site / "xmetro_ros" / "resources.py").is_file() and (site / "xmetro_ros" / "msg").is_dir()
+    assert (site / "xmetro_ros" / "scan" / "resources.py").is_file() and (site / "xmetro_ros" / "msg").is_dir()
     assert not (site / "xmetro_ros" / "config").exists() and not (site / "xmetro_ros" / "models").exists()
 
     env = dict(os.environ)
@@ -156,7 +156,7 @@ def test_colcon_install_finds_config_and_model_and_starts_renamed_node(tmp_path:
                    filter(None, [str(prefix), os.environ.get("AMENT_PREFIX_PATH")])),
                LD_LIBRARY_PATH=os.pathsep.join(filter(None, [str(prefix / "lib"), os.environ.get("LD_LIBRARY_PATH")])),
                PATH=os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")]))
-    probe = ("import json, xmetro_ros, xmetro_ros.resources as r\n"
+    probe = ("import json, xmetro_ros, xmetro_ros.scan.resources as r\n"
              "try:\n    from ament_index_python.packages import get_package_share_directory as g\n"
              "    ament = g('xmetro_ros')\nexcept ImportError:\n    ament = None\n"
              "print(json.dumps({'pkg': xmetro_ros.__file__, 'yaml': str(r.config_path('xmetro.yaml')),"
@@ -285,7 +285,7 @@ def test_ament_share_dir_follows_the_ament_index_rule(tmp_path: Path, monkeypatc
     does not count — the rule of ament_index_python.get_package_share_directory (compared where installed)."""
     import os
 
-    from xmetro_ros.resources import ament_share_dir
+    from xmetro_ros.scan.resources import ament_share_dir
 
     a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
     (a / "share" / "xmetro_ros").mkdir(parents=True)  # no marker: not registered

@@ -102,7 +102,7 @@ def test_predict_truck_bag_defaults_settings(tmp_path):
     # An outdoor scene in metres lies far outside the model's domain (stand-off ~13 m): the spread head's σ̂ would
     # overflow float32 there; U stays finite (σ̂ capped at the calibration's largest, widened by the domain distance)
     # wherever a deviation is published, and those points carry OUT_OF_DOMAIN.
-    from xmetro_ros.flags import FLAG_OUT_OF_DOMAIN
+    from xmetro_ros.judge.flags import FLAG_OUT_OF_DOMAIN
     from xmetro_ros.ros.node_outputs import cloud_arrays
 
     for o in res.outputs:

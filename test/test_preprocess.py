@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from xmetro_ros import preprocess as pp
-from xmetro_ros.artifacts import Cylinder, Sphere
-from xmetro_ros.geometry import HeadPose
 from xmetro_ros.preprocess import knn as pp_knn
-from xmetro_ros.scan import Scan
-from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.scan.artifacts import Cylinder, Sphere
+from xmetro_ros.scan.geometry import HeadPose
+from xmetro_ros.scan.scan import Scan
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
 
 SETTINGS = ScanSettings(10.0, 4.0, 0.5)
 

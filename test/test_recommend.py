@@ -7,19 +7,12 @@ import os
 import numpy as np
 import pytest
 
-from xmetro_ros.artifacts import Sphere
-from xmetro_ros.geometry import matrix_to_quat
-from xmetro_ros.inference import ModelSet
-from xmetro_ros.recommend import (
-    RecommendCancelled,
-    RecommendProgress,
-    coverage_mask,
-    orientation_grid,
-    recommend,
-    rotation_xyz,
-)
-from xmetro_ros.scan_handler import HandlerParams, ScanHandler
-from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.judge.inference import ModelSet
+from xmetro_ros.judge.scan_handler import HandlerParams, ScanHandler
+from xmetro_ros.plan.recommend import RecommendCancelled, RecommendProgress, coverage_mask, recommend
+from xmetro_ros.scan.artifacts import Sphere
+from xmetro_ros.scan.geometry import matrix_to_quat, orientation_grid, rotation_xyz
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
 from xmetro_ros.sim import simulate_scan
 
 

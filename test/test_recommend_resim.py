@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from xmetro_ros.artifacts import Cylinder, Sphere
-from xmetro_ros.features import FeatureContext, compute_features
-from xmetro_ros.geometry import point_geometry
-from xmetro_ros.recommend import coverage_mask, orientation_grid, p95_interval_halfwidth, recommend
-from xmetro_ros.resim import GroundTruth, Region, _window, resim_seeds, resimulate, resimulate_many, verify
-from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.judge.features import FeatureContext, compute_features
+from xmetro_ros.plan.recommend import coverage_mask, p95_interval_halfwidth, recommend
+from xmetro_ros.plan.resim import GroundTruth, Region, _window, resim_seeds, resimulate, resimulate_many, verify
+from xmetro_ros.scan.artifacts import Cylinder, Sphere
+from xmetro_ros.scan.geometry import orientation_grid, point_geometry
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
 from xmetro_ros.sim import simulate_scan
 
 NOISE_OFF = {n: {"enabled": False} for n in ("speckle", "incidence", "anisotropy", "outliers")}

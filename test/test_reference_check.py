@@ -1,4 +1,5 @@
-"""Reference-scan monitoring (xmetro_ros.reference_check, ROS-free): simulated scans of a certified Ø25 sphere at a
+"""Reference-scan monitoring (xmetro_ros.monitor.reference_check, ROS-free): simulated scans of a certified Ø25 sphere
+at a
 known position, judged by the shipped model (the node's own processing path, ScanHandler), checked against the
 sphere. Truth from the simulator: a stable scanner, and one whose laser line tilts by 2 mrad (a range error of
 2 µm per mm along the line, ±25 µm at the sphere's edges, the size of the noise) from a given reference scan on.
@@ -14,12 +15,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from xmetro_ros.artifacts import Sphere
-from xmetro_ros.drift import DriftConfig, DriftMonitor
-from xmetro_ros.inference import ModelSet
-from xmetro_ros.reference_check import ReferenceChecker, ReferenceSpec, live_candidates, screen_candidates
-from xmetro_ros.scan_handler import HandlerParams, ScanHandler
-from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.judge.inference import ModelSet
+from xmetro_ros.judge.scan_handler import HandlerParams, ScanHandler
+from xmetro_ros.monitor.drift import DriftConfig, DriftMonitor
+from xmetro_ros.monitor.reference_check import ReferenceChecker, ReferenceSpec, live_candidates, screen_candidates
+from xmetro_ros.scan.artifacts import Sphere
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
 from xmetro_ros.sim import simulate_scan
 
 RADIUS = 12.5

@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 from builtin_interfaces.msg import Time
 
-from xmetro_ros.geometry import HeadPose
 from xmetro_ros.ros import cloud as C
 from xmetro_ros.ros.convert import (
     LENGTH_FIELDS,
@@ -20,8 +19,9 @@ from xmetro_ros.ros.convert import (
     settings_to_msg,
     stamp_to_ns,
 )
-from xmetro_ros.scan import Scan
-from xmetro_ros.scanner import ScannerModel, ScanSettings, SettingsError
+from xmetro_ros.scan.geometry import HeadPose
+from xmetro_ros.scan.scan import Scan
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings, SettingsError
 
 SETTINGS = ScanSettings(10.0, 4.0, 0.5)
 

@@ -8,12 +8,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from xmetro_ros import flags as fl
-from xmetro_ros.artifacts import Sphere
-from xmetro_ros.inference import ModelSet
-from xmetro_ros.scan import Scan
-from xmetro_ros.scan_handler import HandlerParams, ScanError, ScanHandler, cap_points, decimation_index
-from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.judge import flags as fl
+from xmetro_ros.judge.inference import ModelSet
+from xmetro_ros.judge.scan_handler import HandlerParams, ScanError, ScanHandler, cap_points, decimation_index
+from xmetro_ros.scan.artifacts import Sphere
+from xmetro_ros.scan.scan import Scan
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
 from xmetro_ros.sim import simulate_scan
 
 

@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 from conftest import need_shared
 
-from xmetro_ros.artifacts import Cylinder, Sphere
 from xmetro_ros.bag.reader import BagReader
-from xmetro_ros.geometry import HeadPose
 from xmetro_ros.ros.convert import settings_from_msg, stamp_to_ns
 from xmetro_ros.ros.scan_io import ScanBagError, read_manifest, read_scans, write_scans
-from xmetro_ros.scan import Scan
-from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.scan.artifacts import Cylinder, Sphere
+from xmetro_ros.scan.geometry import HeadPose
+from xmetro_ros.scan.scan import Scan
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
 
 ROOT = Path(__file__).resolve().parents[1]
 BAGS = ROOT.parent / "shared" / "data" / "bags"

@@ -1,4 +1,4 @@
-"""One-pass summary statistics (xmetro_ros.scan_stats) equal the numpy computation the summary used before."""
+"""One-pass summary statistics (xmetro_ros.judge.scan_stats) equal the numpy computation the summary used before."""
 
 from __future__ import annotations
 
@@ -7,12 +7,12 @@ import os
 import numpy as np
 import pytest
 
-from xmetro_ros import flags as fl
-from xmetro_ros import scan_stats as st
-from xmetro_ros.artifacts import Sphere
-from xmetro_ros.inference import ModelSet
-from xmetro_ros.scan_handler import HandlerParams, ScanHandler
-from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.judge import flags as fl
+from xmetro_ros.judge import scan_stats as st
+from xmetro_ros.judge.inference import ModelSet
+from xmetro_ros.judge.scan_handler import HandlerParams, ScanHandler
+from xmetro_ros.scan.artifacts import Sphere
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
 from xmetro_ros.sim import simulate_scan
 
 

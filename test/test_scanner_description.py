@@ -8,9 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from xmetro_ros.artifacts import Sphere
-from xmetro_ros.geometry import HeadPose, point_geometry
-from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.scan.artifacts import Sphere
+from xmetro_ros.scan.geometry import HeadPose, point_geometry
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
 from xmetro_ros.sim import simulate_scan
 
 RANGES = {"lateral_density": [0.5, 100], "direction_density": [0.1, 50], "exposure_ms": [0.005, 50]}

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from xmetro_ros.ros.scan_io import read_scans
-from xmetro_ros.scanner import ScannerModel
+from xmetro_ros.scan.scanner import ScannerModel
 
 ROOT = Path(__file__).resolve().parents[1]
 

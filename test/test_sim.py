@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from xmetro_ros.artifacts import ArtifactSpecError, Cylinder, Plane, Sphere
-from xmetro_ros.geometry import HeadPose
-from xmetro_ros.scanner import ScannerModel, ScanSettings, SettingsError
+from xmetro_ros.scan.artifacts import ArtifactSpecError, Cylinder, Plane, Sphere
+from xmetro_ros.scan.geometry import HeadPose
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings, SettingsError
 from xmetro_ros.sim import EFFECTS, EffectConfigError, UnknownEffectError, simulate_scan
 
 SC = ScannerModel.load()

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from xmetro_ros.apps import simulate as sim_cli
-from xmetro_ros.artifacts import Cylinder, Sphere
-from xmetro_ros.scanner import ScannerModel
+from xmetro_ros.scan.artifacts import Cylinder, Sphere
+from xmetro_ros.scan.scanner import ScannerModel
 from xmetro_ros.sim import UnknownEffectError
 from xmetro_ros.sim.campaign import campaign_manifest, item_seed, study_campaign
 

@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from xmetro_ros.artifacts import Cylinder, Plane, Sphere
-from xmetro_ros.dataset import build_table
-from xmetro_ros.scanner import ScannerModel, ScanSettings
+from xmetro_ros.calibrate.dataset import build_table
+from xmetro_ros.scan.artifacts import Cylinder, Plane, Sphere
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
 from xmetro_ros.sim import simulate_scan
 from xmetro_ros.sim.speckle import correlated_field, correlated_field_std
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from xmetro_ros import fitting, targets
-from xmetro_ros.artifacts import Cylinder, Plane, Sphere
+from xmetro_ros.scan import fitting, targets
+from xmetro_ros.scan.artifacts import Cylinder, Plane, Sphere
 
 
 def sphere_points(r: float, c=(0.0, 0.0, 0.0), n: int = 500, seed: int = 0) -> np.ndarray:

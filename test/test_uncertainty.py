@@ -11,14 +11,14 @@ import numpy as np
 import onnxruntime as ort
 import pytest
 
-from xmetro_ros.artifacts import Sphere
-from xmetro_ros.dataset import build_table
-from xmetro_ros.features import STUDY_FEATURES
-from xmetro_ros.geometry import HeadPose, quat_to_matrix
-from xmetro_ros.inference import SIGMA_CAP_FACTOR, ModelLoadError, ModelSet
+from xmetro_ros.calibrate.dataset import build_table
+from xmetro_ros.judge.features import STUDY_FEATURES
+from xmetro_ros.judge.inference import SIGMA_CAP_FACTOR, ModelLoadError, ModelSet
 from xmetro_ros.learn.uncertainty import interval_metrics, predict_clouds
 from xmetro_ros.learn.uncertainty_eval import bins_for, markdown, run
-from xmetro_ros.scanner import ScannerModel
+from xmetro_ros.scan.artifacts import Sphere
+from xmetro_ros.scan.geometry import HeadPose, quat_to_matrix
+from xmetro_ros.scan.scanner import ScannerModel
 from xmetro_ros.sim import simulate_scan
 
 SC = ScannerModel.load()

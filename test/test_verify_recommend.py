@@ -51,7 +51,7 @@ def test_verify_recommend_refuses_a_pose_model_that_does_not_match(tmp_path, cap
     (the node's rule: inference.load_pose_model)."""
     import shutil
 
-    from xmetro_ros.resources import pose_model_dir
+    from xmetro_ros.scan.resources import pose_model_dir
 
     for key, change in (("feature_names", lambda v: list(reversed(v))), ("scanner", lambda v: {"id": "ls-200"})):
         odd = tmp_path / key
@@ -90,8 +90,8 @@ def test_shipped_model_recommendations_hold_when_followed():
     never makes the actual p95 worse beyond the re-simulation noise; after / best actual ≤ 1.25 in every region,
     median ≤ 1.1; the predicted p95 after within ±30 % of the actual; rank correlation of predicted and actual p95
     over the candidates ≥ 0.7 (median)."""
-    from xmetro_ros.inference import ModelSet
-    from xmetro_ros.resources import pose_model_dir
+    from xmetro_ros.judge.inference import ModelSet
+    from xmetro_ros.scan.resources import pose_model_dir
 
     rep = verify_regions(None)
     assert rep["model"] == ModelSet.load(pose_model_dir()).id and len(rep["judge_models"]) == 2

@@ -58,13 +58,13 @@ def _scores(reg, table) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from xmetro_ros.artifacts import Sphere
-    from xmetro_ros.dataset import build_table
-    from xmetro_ros.features import STUDY_FEATURES
+    from xmetro_ros.calibrate.dataset import build_table
+    from xmetro_ros.judge.features import STUDY_FEATURES
     from xmetro_ros.learn.families import get_profile
     from xmetro_ros.learn.pointnet import PointNetRegressor
     from xmetro_ros.learn.train import _pointnet_config
-    from xmetro_ros.scanner import ScannerModel, ScanSettings
+    from xmetro_ros.scan.artifacts import Sphere
+    from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
     from xmetro_ros.sim import simulate_scan
     from xmetro_ros.sim.campaign import study_campaign
 

@@ -25,8 +25,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from xmetro_ros.artifacts import Cylinder, Sphere  # noqa: E402
-from xmetro_ros.scanner import ScannerModel, ScanSettings  # noqa: E402
+from xmetro_ros.scan.artifacts import Cylinder, Sphere  # noqa: E402
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings  # noqa: E402
 
 # Scans are stamped from this epoch (2025-01-01T00:00:00Z), one every STAMP_STEP_NS.
 STAMP0_NS = 1_735_689_600_000_000_000

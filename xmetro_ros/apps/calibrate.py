@@ -1,10 +1,11 @@
 """`xmetro calibrate CAMPAIGN --out DIR`: from a recorded calibration campaign to a model set of THAT scanner.
 
-1. read the campaign file (:mod:`xmetro_ros.campaign_file`: scanner description, certified spheres and ball bars,
+1. read the campaign file (:mod:`xmetro_ros.calibrate.campaign_file`: scanner description, certified spheres and ball
+bars,
    recordings with known or fitted positions);
 2. read every recording (our ``xmetro record`` output or any rosbag2 bag, directory or bare .mcap: PointCloud2 +
    ScannerSettings, no simulator metadata needed), assemble one measurement per sphere and scan, and check the
-   data before training (:mod:`xmetro_ros.campaign_data`; every error names the scan and the cause);
+   data before training (:mod:`xmetro_ros.calibrate.campaign_data`; every error names the scan and the cause);
 3. compute the study's features with the campaign's scanner geometry (not the packaged virtual scanner's), train
    with the study's protocol (point and cloud splits, ``--families``), export model sets whose card records the
    scanner (id, serial), the campaign (hash, artifacts and certificates, positions), the data checks and metrics;
@@ -97,7 +98,7 @@ def _uncertainty(model_dirs: dict[str, Path], train: Any, cal: Any, cov: Any, ca
                  log: Any) -> dict[str, Any]:
     """Conformal calibration of each model set on the calibration table, multivariate domain of the training rows,
     interval metrics on the coverage table (per family: the card block and per axis coverage / mean U in mm)."""
-    from ..inference import ModelSet, update_card
+    from ..judge.inference import ModelSet, update_card
     from ..learn.uncertainty import calibrate as conformal
     from ..learn.uncertainty import fit_domain, interval_metrics, predict_clouds
 
@@ -121,11 +122,11 @@ def calibrate(campaign_path: str | Path, out: str | Path, *, profile: str = "qui
               uncertainty: bool = True, prior: str | Path | None = None, log: Any = print) -> dict[str, Any]:
     """Run the whole calibration (module docstring); return the report dict. Raises CampaignError, or PriorError
     (a ValueError) for a ``prior`` that cannot warm-start this calibration's network."""
-    from .. import vdi2634
-    from ..campaign_data import assemble
-    from ..campaign_file import load_campaign
-    from ..dataset import build_table
-    from ..features import STUDY_FEATURES
+    from ..calibrate import vdi2634
+    from ..calibrate.campaign_data import assemble
+    from ..calibrate.campaign_file import load_campaign
+    from ..calibrate.dataset import build_table
+    from ..judge.features import STUDY_FEATURES
     from ..learn.families import get_profile
     from ..learn.prior import PRIOR_FAMILY, PriorError, check_prior, load_prior
     from ..learn.study import run_study
@@ -211,7 +212,7 @@ def calibrate(campaign_path: str | Path, out: str | Path, *, profile: str = "qui
 
 def run(args: argparse.Namespace) -> int:
     """``xmetro calibrate``: returns the exit code (2 with the reason on a campaign error)."""
-    from ..campaign_file import CampaignError
+    from ..calibrate.campaign_file import CampaignError
 
     fams = tuple(f.strip() for f in args.families.split(",") if f.strip())
     try:

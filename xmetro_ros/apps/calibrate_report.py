@@ -69,11 +69,11 @@ def deviation_maps(data: Any, parts: dict[str, list[int]], model_dirs: dict[str,
                    seed: int = 0, n_maps: int = MAPS_PER_FAMILY, max_points: int = MAP_POINTS) -> list[dict[str, Any]]:
     """Write ``out/deviation_maps/<family>_r<rec>_s<scan>_<artifact>.png`` for held-out scans (module doc); return
     one record per map (family, scan, part, file, figures; ``png_b64`` for the HTML, not for JSON)."""
-    from ..artifacts import Sphere
-    from ..dataset import sample_rows, scan_part
-    from ..features import STUDY_FEATURES
-    from ..inference import ModelSet
+    from ..calibrate.dataset import sample_rows, scan_part
+    from ..judge.features import STUDY_FEATURES
+    from ..judge.inference import ModelSet
     from ..preprocess import PreprocessConfig, prepare_scan
+    from ..scan.artifacts import Sphere
 
     part_name, picks = _pick(parts, n_maps)
     folder = out / "deviation_maps"

@@ -8,7 +8,7 @@
    p95 |error|) and ask the node why (``~/explain``, SHAP) and how to rescan it (``~/recommend_settings``);
 4. follow the recommendation in the virtual scanner (the demo bag's scans are simulated: their artifact, settings,
    pose and seed are known): re-simulate the region with the current and the recommended set-up and report the
-   actual p95 |error| (noise included) before and after, next to the predicted figures (``xmetro_ros.resim``);
+   actual p95 |error| (noise included) before and after, next to the predicted figures (``xmetro_ros.plan.resim``);
 5. write ``out/demo/report.html`` (per-scan quality table, deviation maps predicted vs actual, SHAP, the
    recommendation with its re-simulated check) and print a short summary.
 
@@ -34,7 +34,7 @@ EXPLAIN_MAX_POINTS = 200
 
 def default_demo_bag() -> Path:
     """bags/demo.mcap of the checkout (the demo runs from a clone)."""
-    from ..resources import repo_root
+    from ..scan.resources import repo_root
 
     root = repo_root()
     if root is None:
@@ -77,7 +77,7 @@ def _worst_region(outputs: list[Any]) -> dict[str, Any] | None:
     if best is None:
         return None
     o = outputs[best[1]]
-    from .. import flags as fl
+    from ..judge import flags as fl
 
     pts, dev, flags = deviation_arrays(o.deviations)
     n = np.linalg.norm(dev, axis=1)
@@ -152,7 +152,7 @@ def _settings_text(s: Any) -> str:
 
 
 def _quat_deg(q: Any) -> str:
-    from ..geometry import quat_to_matrix
+    from ..scan.geometry import quat_to_matrix
 
     r = quat_to_matrix([q.x, q.y, q.z, q.w])
     angle = float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1.0, 1.0))))
@@ -206,7 +206,7 @@ def _resimulated(inputs: dict[int, Any], worst: dict[str, Any], recommend: dict[
     """Actual p95 |error| (µm) in the worst region before and after following the recommendation, re-simulated in
     the virtual scanner from the judged scan's ground truth (``inputs``: the bag's scans by stamp); None when the
     scan is not a simulated one."""
-    from ..resim import GroundTruth, Region, resimulate
+    from ..plan.resim import GroundTruth, Region, resimulate
     from ..ros.convert import settings_from_msg
 
     src = inputs.get(worst["stamp_ns"])

@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .fleet_report import AXES, count_rows, frame, quality_row, write_overview, write_summary
+from .fleet_report import AXES, BagJob, count_rows, frame, quality_row, write_overview, write_summary
 
 __all__ = ["AXES", "BagJob", "FleetResult", "dask_client", "find_bags", "plan_jobs", "predict_job", "quality_row",
            "register", "run", "run_fleet", "write_overview", "write_summary"]
@@ -49,21 +49,6 @@ SCANS_SUFFIX = ".scans.parquet"
 SUMMARY = "summary.parquet"
 OVERVIEW = "overview.html"
 STATUS = "fleet.json"
-
-
-@dataclass
-class BagJob:
-    """One input bag and where its outputs go."""
-
-    bag: str  # input: .mcap file or rosbag2 directory
-    name: str  # relative name (no suffix), e.g. "cell3/2026-11-20"
-    out: str  # output .mcap
-    scans: str  # output per-scan parquet
-    cell: str
-
-    def done(self) -> bool:
-        """Both outputs exist under their final names (they are renamed there only once complete)."""
-        return Path(self.out).is_file() and Path(self.scans).is_file()
 
 
 @dataclass

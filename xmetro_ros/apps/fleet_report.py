@@ -1,6 +1,7 @@
 """The tables and page of ``xmetro fleet predict`` (``apps/fleet.py``): per-scan quality rows, the per-bag and
 fleet summary Parquet files, and the self-contained HTML overview.
 
+- :class:`BagJob`: one input bag of a fleet run and where its outputs go;
 - :func:`quality_row`: one ``ScanQuality`` message as a flat row, generically from its fields (a field added to the
   message becomes a column without a change here);
 - :func:`write_summary`: the done bags' per-scan tables concatenated into ``summary.parquet``;
@@ -10,17 +11,30 @@ fleet summary Parquet files, and the self-contained HTML overview.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from .fleet import BagJob
-
-__all__ = ["AXES", "count_rows", "frame", "quality_row", "write_overview", "write_summary"]
+__all__ = ["AXES", "BagJob", "count_rows", "frame", "quality_row", "write_overview", "write_summary"]
 
 AXES = ("x", "y", "z")
+
+
+@dataclass
+class BagJob:
+    """One input bag and where its outputs go."""
+
+    bag: str  # input: .mcap file or rosbag2 directory
+    name: str  # relative name (no suffix), e.g. "cell3/2026-11-20"
+    out: str  # output .mcap
+    scans: str  # output per-scan parquet
+    cell: str
+
+    def done(self) -> bool:
+        """Both outputs exist under their final names (they are renamed there only once complete)."""
+        return Path(self.out).is_file() and Path(self.scans).is_file()
 
 
 def _flatten(prefix: str, value: Any, row: dict[str, Any]) -> None:
@@ -47,7 +61,7 @@ def quality_row(q: Any) -> dict[str, Any]:
     seconds); ``float64[3]`` per-axis fields as ``<name>_x``, ``_y``, ``_z`` (e.g. ``p95_abs_error_z``, metres);
     the flag counts as ``flag_<name>``; the settings as ``settings_<field>`` (e.g. ``settings_exposure_time``,
     ``settings_head_pose_position_z``); plus ``verdict_name``."""
-    from ..flags import verdict_name
+    from ..judge.flags import verdict_name
     from ..ros.convert import stamp_to_ns
 
     row: dict[str, Any] = {"stamp_ns": int(stamp_to_ns(q.header.stamp)), "frame_id": q.header.frame_id}

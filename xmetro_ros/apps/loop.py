@@ -36,8 +36,7 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """``xmetro loop``: load the inputs, run the loop, write the report (and the augmented model); exit code."""
-    from ..artifacts import ArtifactSpecError
-    from ..campaign_file import CampaignError
+    from ..calibrate.campaign_file import CampaignError
     from ..loop.data import LoopInputError
     from ..loop.inputs import load_inputs
     from ..loop.model import GivenModel
@@ -45,11 +44,12 @@ def run(args: argparse.Namespace) -> int:
     from ..loop.run import LoopConfig, run_loop
     from ..loop.trace import TraceConfig
     from ..ros.scan_io import iter_scans
+    from ..scan.artifacts import ArtifactSpecError
 
     try:
         given = None
         if args.model:
-            from ..inference import ModelSet
+            from ..judge.inference import ModelSet
 
             given = GivenModel(ModelSet.load(args.model))
         feats = given.feature_names if given else None
@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
 
             data = from_campaign(args.campaign, _read_recording, feats)
         elif args.workers or args.scheduler:
-            from ..dataset_dask import load_inputs_dask
+            from ..loop.inputs_dask import load_inputs_dask
             from .fleet import dask_client
 
             with dask_client(args.scheduler, args.workers) as client:

@@ -49,8 +49,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run_write(args: argparse.Namespace) -> int:
     """``xmetro parts write``."""
-    from ..mesh import write_ply, write_stl
-    from ..parts import PARTS, make_part
+    from ..scan.generated_parts import PARTS, make_part
+    from ..scan.mesh import write_ply, write_stl
 
     out = Path(args.dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -67,11 +67,11 @@ def run_write(args: argparse.Namespace) -> int:
 def run_scan(args: argparse.Namespace) -> int:
     """``xmetro parts scan``: the part as the study presents it (``parts_study.PRESENTATION``), one scan in a bag
     (``ros.scan_io``), the CAD next to it; prints the ``--cad-pose`` for ``xmetro predict``."""
-    from ..mesh import write_stl
-    from ..parts import PARTS, make_part
-    from ..parts_study import PRESENTATION
+    from ..parts.study import PRESENTATION
     from ..ros.scan_io import write_scans
-    from ..scanner import ScannerModel, ScanSettings
+    from ..scan.generated_parts import PARTS, make_part
+    from ..scan.mesh import write_stl
+    from ..scan.scanner import ScannerModel, ScanSettings
     from ..sim import simulate_scan
 
     if args.part not in PARTS:
@@ -91,8 +91,8 @@ def run_scan(args: argparse.Namespace) -> int:
 
 def run_study_cmd(args: argparse.Namespace) -> int:
     """``xmetro parts study``."""
-    from ..parts import PARTS
-    from ..parts_study import DEFAULT_PARTS, run_study
+    from ..parts.study import DEFAULT_PARTS, run_study
+    from ..scan.generated_parts import PARTS
 
     parts = tuple(args.parts.split(",")) if args.parts else DEFAULT_PARTS
     unknown = [p for p in parts if p not in PARTS]

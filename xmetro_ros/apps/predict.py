@@ -52,7 +52,7 @@ class PredictResult:
     wall_s: float = 0.0
 
     def summary(self) -> str:
-        from ..flags import verdict_name
+        from ..judge.flags import verdict_name
 
         n_def = sum(1 for o in self.outputs if o.quality.settings_defaulted)
         lines = [f"predict {self.bag} → {self.out}: {len(self.outputs)} scans, {self.settings_seen} settings, "

@@ -1,5 +1,5 @@
 """`xmetro predict BAG --out OUT.mcap --cad PART.stl`: each judged scan's deviation map against the part's CAD,
-before and after the model's compensation, with U along the normal (``xmetro_ros.cad_judge``).
+before and after the model's compensation, with U along the normal (``xmetro_ros.parts.cad_judge``).
 
 The node's ``~/deviations`` cloud of each scan (x, y, z as received, predicted error dx, dy, dz, U ux, uy, uz,
 flags; metres) is read back, converted to mm and compared with the CAD placed by ``--cad-pose`` (part → scan
@@ -35,9 +35,9 @@ def cad_reports(outputs: list[Any], cad_path: str | Path, *, pose: np.ndarray | 
                 register: bool = False, report: str | Path | None = None) -> list[dict[str, Any]]:
     """The CAD deviation summary of each output set with a ``~/deviations`` cloud (``OutputSet`` of
     ``predict_bag``); written to ``report`` (JSON) when given."""
-    from ..cad_judge import cad_deviation
-    from ..mesh import MeshArtifact
+    from ..parts.cad_judge import cad_deviation
     from ..ros.cloud import read_points_numpy
+    from ..scan.mesh import MeshArtifact
 
     cad = MeshArtifact.from_file(cad_path)
     rows: list[dict[str, Any]] = []

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ..flags import verdict_name
+from ..judge.flags import verdict_name
 from ..ros.convert import stamp_to_ns
 from ..ros.node_outputs import (
     DIAGNOSTICS_TYPE,

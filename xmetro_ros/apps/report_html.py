@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from ..flags import verdict_name
+from ..judge.flags import verdict_name
 
 __all__ = ["ReportScan", "deviation_map_png", "shap_bar_png", "write_report"]
 

@@ -8,8 +8,9 @@ import sys
 import time
 from pathlib import Path
 
-from ..artifacts import ArtifactSpecError, parse_artifact
-from ..scanner import ScannerModel
+from ..scan.artifact_specs import parse_artifact
+from ..scan.artifacts import ArtifactSpecError
+from ..scan.scanner import ScannerModel
 from ..sim.campaign import campaign_manifest, study_campaign
 from ..sim.effect import EffectConfigError, UnknownEffectError
 from ..sim.effects import EFFECTS

@@ -86,9 +86,9 @@ def _calibrate_default(model_dir: Path, profile: str, seed: int) -> None:
     """Split-conformal calibration of the default model set on clouds it never saw: the profile's campaign
     simulated again with seed + CALIBRATION_SEED_OFFSET (same artifacts and settings, new clouds), 300 points per
     cloud (learn/uncertainty.py)."""
-    from ..dataset import build_table
-    from ..features import STUDY_FEATURES
-    from ..inference import update_card
+    from ..calibrate.dataset import build_table
+    from ..judge.features import STUDY_FEATURES
+    from ..judge.inference import update_card
     from ..learn.families import get_profile
     from ..learn.shape_domain import shape_domain_of_scans
     from ..learn.uncertainty import calibrate
@@ -111,8 +111,8 @@ def _calibrate_default(model_dir: Path, profile: str, seed: int) -> None:
 
 def run_export_default(args: argparse.Namespace) -> int:
     """``xmetro export-default``: train (or copy) a model set, check it loads, install it; exit code."""
-    from ..inference import ModelSet
-    from ..resources import default_model_dir
+    from ..judge.inference import ModelSet
+    from ..scan.resources import default_model_dir
 
     target = default_model_dir() if args.replace_packaged else Path(args.out)
     with tempfile.TemporaryDirectory() as tmp:
@@ -157,7 +157,7 @@ def _read_data(data: str | Path) -> tuple[list[Any], dict[str, Any]]:
 
 def _scanner_card() -> dict[str, str]:
     """The scanner a simulated campaign stands for (the packaged virtual scanner)."""
-    from ..scanner import ScannerModel
+    from ..scan.scanner import ScannerModel
 
     sc = ScannerModel.load()
     return {"id": sc.id, "serial": sc.serial, "description": sc.source, "virtual": "true"}

@@ -4,7 +4,7 @@ For each region (nine by default: 3 on the 35 mm sphere... see ``REGIONS``; seed
 campaign's training items, whose seeds derive from the campaign seed by ``SeedSequence``), the artifact is scanned
 at the judged settings, judged by the model set, the recommendation asked for the region (``recommend`` with its
 defaults), then the current set-up, the recommended one and every candidate are re-simulated
-(``xmetro_ros.resim.verify``). Writes one JSON object: per region the predicted and actual p95 before / after, the
+(``xmetro_ros.plan.resim.verify``). Writes one JSON object: per region the predicted and actual p95 before / after, the
 actual best candidate, the ratio after / best, the recommendation's percentile in the actual ranking, the rank
 correlation of predicted and actual p95 over the candidates; medians over the regions. The actual best is
 measured on the same evaluation draws as before and after (``resim.verify``: finalists chosen on separate selection
@@ -23,9 +23,9 @@ from typing import Any
 
 import numpy as np
 
-from ..artifacts import Artifact, Cylinder, Sphere
-from ..geometry import matrix_to_quat
-from ..scanner import ScanSettings
+from ..scan.artifacts import Artifact, Cylinder, Sphere
+from ..scan.geometry import matrix_to_quat
+from ..scan.scanner import ScanSettings
 
 # (artifact, judged settings, direction of the region centre from the artifact's centre / axis)
 REGIONS: list[tuple[Artifact, tuple[float, float, float], tuple[float, float, float]]] = [
@@ -81,12 +81,12 @@ def verify_regions(model_dir: Path | None = None, radius_mm: float = 4.0, n_regi
     search's own, with the domain check. It measures what the domain check costs a model not trained there.
     ``region_set``: ``"test"`` (``REGIONS``, seeds 7000 + i) or ``"validation"`` (``VALIDATION_REGIONS``, 8000 + i)."""
     regions, seed0 = REGION_SETS[region_set]
-    from ..inference import ModelSet, load_pose_model
-    from ..recommend import recommend
-    from ..resim import GroundTruth, Region, verify
-    from ..resources import pose_model_path
-    from ..scan_handler import HandlerParams, ScanHandler
-    from ..scanner import ScannerModel
+    from ..judge.inference import ModelSet, load_pose_model
+    from ..judge.scan_handler import HandlerParams, ScanHandler
+    from ..plan.recommend import recommend
+    from ..plan.resim import GroundTruth, Region, verify
+    from ..scan.resources import pose_model_path
+    from ..scan.scanner import ScannerModel
     from ..sim import simulate_scan
 
     scanner = ScannerModel.load()
@@ -176,7 +176,7 @@ def run(args: argparse.Namespace) -> int:
     """``xmetro verify-recommend``: follow the recommendation in the virtual scanner; returns the exit code."""
     kw: dict[str, Any] = {"turn_steps": 1} if args.quick else {}
     kw["rank_by"] = args.rank_by
-    from ..inference import ModelLoadError
+    from ..judge.inference import ModelLoadError
 
     try:
         rep = verify_regions(args.model, args.radius, max(1, min(args.regions, len(REGIONS))),

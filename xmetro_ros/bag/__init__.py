@@ -10,4 +10,6 @@
 
 Live recording over DDS is :mod:`xmetro_ros.ros.recorder`; the ``xmetro record`` and ``xmetro bag recover``
 commands are :mod:`xmetro_ros.apps.record`.
+
+May import: nothing of xmetro_ros.
 """

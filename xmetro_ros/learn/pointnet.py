@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..pointsets import partition_sets
+from ..judge.pointsets import partition_sets
 
 __all__ = ["STUDY_LAYOUT", "PointNetConfig", "PointNetReg", "PointNetRegressor", "partition_sets", "sets_by_group"]
 

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from ..inference import model_scanner_id
+from ..judge.inference import model_scanner_id
 
 __all__ = ["PRIOR_FAMILY", "Prior", "PriorError", "check_prior", "load_prior"]
 
@@ -84,7 +84,7 @@ def load_prior(spec: str | Path) -> Prior:
     import onnxruntime as ort
     import torch
 
-    from ..resources import default_model_dir
+    from ..scan.resources import default_model_dir
     from .pointnet import PointNetReg
 
     d = default_model_dir() if str(spec) == "default" else Path(spec)

@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from ..attribution import explain, global_ranking
-from ..inference import AXES, ModelSet
+from ..judge.attribution import explain, global_ranking
+from ..judge.inference import AXES, ModelSet
 from . import report
 from .families import FAMILIES, TARGET_SCALE, check_family, get_profile
 from .protocol import Split, cloud_split, config_keys, mae, r2, study_split, summarize
@@ -42,9 +42,9 @@ def load_data(profile: str = "quick", seed: int = 0, scans: list[Any] | None = N
     ``source_manifest``), or by simulating the profile's campaign with ``seed``. Returns (table, manifest).
 
     With a Dask ``client`` the scans are simulated (or read: ``sources``, callables returning scans, e.g. one per
-    bag) and prepared on its workers by :func:`xmetro_ros.dataset_dask.build_table_dask`: the same table."""
-    from ..dataset import build_table
-    from ..features import STUDY_FEATURES
+    bag) and prepared on its workers by :func:`xmetro_ros.calibrate.dataset_dask.build_table_dask`: the same table."""
+    from ..calibrate.dataset import build_table
+    from ..judge.features import STUDY_FEATURES
     from ..preprocess import PreprocessConfig
 
     prof = get_profile(profile)
@@ -60,7 +60,7 @@ def load_data(profile: str = "quick", seed: int = 0, scans: list[Any] | None = N
             scans = [it.simulate() for it in _progress(items, "simulate", "scan")]
             log(f"simulated {len(scans)} scans in {time.perf_counter() - t0:.1f} s")
         else:
-            from ..dataset_dask import SimulateItems
+            from ..calibrate.dataset_dask import SimulateItems
 
             sources = [SimulateItems([it]) for it in items]  # simulated on the workers
         manifest = {"source": "simulated", "campaign_stride": prof.campaign_stride, "n_scans": len(items),
@@ -68,7 +68,7 @@ def load_data(profile: str = "quick", seed: int = 0, scans: list[Any] | None = N
                     "campaign": campaign_manifest(items, seed=seed, effects=effects)}
     t0 = time.perf_counter()
     if client is not None:
-        from ..dataset_dask import ScanList, build_table_dask
+        from ..calibrate.dataset_dask import ScanList, build_table_dask
 
         if sources is None:
             sources = [ScanList([s]) for s in scans or []]

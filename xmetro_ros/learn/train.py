@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from sklearn.model_selection import GroupKFold, KFold, RandomizedSearchCV
 
-from ..inference import AXES, CARD_FORMAT
+from ..judge.inference import AXES, CARD_FORMAT
 from .export import GLOBAL_FEATURE_DOC, embed_card, export_pointnet, export_pointwise
 from .families import (
     POINTWISE_FAMILIES,
@@ -205,7 +205,7 @@ def _fit_pointnet(family, X, y2, groups, seed, prof, params, threads, warm_start
 def feature_units(names: list[str]) -> list[str]:
     """Units of the features from the feature registry (empty string where unknown)."""
     try:
-        from ..features import REGISTRY
+        from ..judge.features import REGISTRY
     except ImportError:
         return [""] * len(names)
     units = []

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from ..inference import AXES, ModelSet, update_card
+from ..judge.inference import AXES, ModelSet, update_card
 
 __all__ = ["DOMAIN_QUANTILE", "SIGMA_FLOOR_MM", "calibrate", "conformal_multiplier", "cross_conformal_by_cloud",
            "fit_domain", "interval_metrics", "predict_clouds"]

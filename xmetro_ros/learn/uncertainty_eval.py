@@ -21,11 +21,11 @@ from typing import Any
 
 import numpy as np
 
-from ..artifacts import Cylinder, Sphere
-from ..dataset import build_table
-from ..features import STUDY_FEATURES
-from ..inference import AXES, ModelSet
-from ..scanner import ScannerModel
+from ..calibrate.dataset import build_table
+from ..judge.features import STUDY_FEATURES
+from ..judge.inference import AXES, ModelSet
+from ..scan.artifacts import Cylinder, Sphere
+from ..scan.scanner import ScannerModel
 from ..sim.campaign import study_campaign
 from .families import get_profile
 from .train import export_model_set, fit_model

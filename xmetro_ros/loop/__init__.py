@@ -2,5 +2,7 @@
 
 ``inputs.load_inputs`` → ``LoopData``; ``run.run_loop`` (model → residual → ``trace.trace_candidates`` → correction
 from ``correct`` or a retrained feature → before/after); ``report.write_report``; ``export.export_loop_model``;
-CLI ``xmetro loop`` in ``cli``.
+inputs on Dask workers in ``inputs_dask``; CLI ``xmetro loop`` in ``xmetro_ros.apps.loop``.
+
+May import: scan, preprocess, judge, calibrate, learn.
 """

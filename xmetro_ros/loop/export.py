@@ -16,7 +16,7 @@ def export_loop_model(result: LoopResult, data: LoopData, out_dir: str | Path) -
     """Write the augmented model set into ``out_dir`` (``result.model``, or with a given model the family retrained
     on the augmented features). Every feature must be computable by the feature
     registry (study features and ``field_<name>``); derived loop candidates are not registry features → error."""
-    from ..features import REGISTRY
+    from ..judge.features import REGISTRY
     from ..learn.train import export_model_set
 
     if not result.added_features:

@@ -1,5 +1,5 @@
 """Inputs of the loop → LoopData: our scans (MCAP bags or in-memory ``Scan``s) and measured files (NIST TLS spheres,
-AT C5 profiler sphere) through ``xmetro_ros.measured``. Lengths mm, artifact frame.
+AT C5 profiler sphere) through ``xmetro_ros.scan.measured``. Lengths mm, artifact frame.
 
 Ground truth: ``targets.errors_with_fit`` = nominal − measured with the nominal radius; ``center=fit`` fits the
 centre per cloud (scans, NIST spheres: one placement each) or once over all profiles (AT C5: one sphere seen by 15
@@ -15,9 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..artifacts import Artifact, parse_artifact
-from ..geometry import unit, vec3
-from ..scan import Scan
+from ..scan.artifact_specs import parse_artifact
+from ..scan.artifacts import Artifact
+from ..scan.geometry import unit, vec3
+from ..scan.scan import Scan
 from .data import LoopData, LoopInputError
 
 __all__ = ["MEASURED_FEATURES", "check_inputs", "detect_kind", "from_atc5", "from_campaign", "from_nist", "from_scans",
@@ -28,9 +29,9 @@ MEASURED_FEATURES = ["N_x", "N_y", "N_z", "Inc", "ViewAng", "R_y", "ang"]
 
 
 def _errors(points: np.ndarray, artifact: Artifact, fit_center: bool) -> tuple[np.ndarray, Artifact]:
-    from ..artifacts import Sphere
-    from ..fitting import fit_sphere
-    from ..targets import errors_with_fit
+    from ..scan.artifacts import Sphere
+    from ..scan.fitting import fit_sphere
+    from ..scan.targets import errors_with_fit
 
     if fit_center and isinstance(artifact, Sphere):
         # Start the fixed-radius fit from a free sphere fit: measured frames put the sphere far from the origin.
@@ -50,7 +51,7 @@ def from_scans(
 ) -> LoopData:
     """Table of organized / unorganized scans (each one group). ``artifact`` None → each scan's own artifact.
     ``scanner``: the scanner model whose geometry the features use (None: the packaged one)."""
-    from ..features import STUDY_FEATURES, FeatureContext, compute_features
+    from ..judge.features import STUDY_FEATURES, FeatureContext, compute_features
     from ..preprocess import prepare_scan
 
     if not scans:
@@ -88,8 +89,8 @@ def from_campaign(path: str | Path, read_bag: Callable[..., list[Scan]],
     (``ros.scan_io.read_scans`` with its topics; injected so that this core module needs no ROS). Groups with a
     fitted position are marked (``artifact.per_group[i].position == "fitted"``): the loop then never selects a
     position-like candidate (``candidates.POSITION_LIKE``). Raises CampaignError naming the scan and the cause."""
-    from ..campaign_data import assemble
-    from ..campaign_file import load_campaign
+    from ..calibrate.campaign_data import assemble
+    from ..calibrate.campaign_file import load_campaign
 
     camp = load_campaign(path)
     # The loop traces residuals; it trains no model over the settings levels: uncovered levels are only noted.
@@ -115,7 +116,7 @@ def _measured_features(points: np.ndarray, L: np.ndarray, V: np.ndarray, standof
                        fields: dict, feats: list[str]) -> np.ndarray:
     """Study geometric features of measured points: normals estimated from the points (open3d), oriented toward
     the sensor; no scan settings."""
-    from ..features import FeatureContext, compute_features
+    from ..judge.features import FeatureContext, compute_features
     from ..preprocess import estimate_normals
 
     normals, _q = estimate_normals(points, radius_mm=2.0, max_nn=30, toward=L)
@@ -129,7 +130,7 @@ def _measured_features(points: np.ndarray, L: np.ndarray, V: np.ndarray, standof
 
 def from_nist(path: Path, artifact: Artifact, fit_center: bool) -> LoopData:
     """NIST TLS sphere scans (a directory of SPH*.xyz or single files): one group per cloud, scanner at origin."""
-    from .. import measured
+    from ..scan import measured
 
     path = Path(path)
     clouds = measured.load_nist_set(path) if path.is_dir() else [measured.load_nist_sphere(path)]
@@ -154,7 +155,7 @@ def from_nist(path: Path, artifact: Artifact, fit_center: bool) -> LoopData:
 def from_atc5(path: Path, artifact: Artifact, fit_center: bool) -> LoopData:
     """AT C5 profiler sphere: 15 profiles taken to the robot base (pose × hand-eye); one group per profile; the
     sphere centre (``center=fit``) is fitted once over all profiles."""
-    from .. import measured
+    from ..scan import measured
 
     profiles = measured.load_atc5(Path(path))
     pts, L, u, rng_, grp, order, names = [], [], [], [], [], [], []
@@ -229,7 +230,7 @@ def load_path(p: str | Path, kind: str, art: Artifact | None, fit: bool, feature
     """One input of :func:`load_inputs` (after :func:`check_inputs`) → LoopData. A bag's scans are taken one at a
     time from ``read_bag`` (an iterator such as ``ros.scan_io.iter_scans`` keeps one raw scan in memory): the table
     of ``from_scans`` over all of them, groups named ``<stem>#<index>``."""
-    from ..measured import MeasuredDataError
+    from ..scan.measured import MeasuredDataError
 
     try:
         if kind == "bag":
@@ -259,6 +260,6 @@ def load_inputs(paths: list[str | Path], artifact_spec: str | None, feature_name
     (bags: any registry features; measured sets: only ``MEASURED_FEATURES``, they declare no scan settings).
     ``read_bag``: reads the scans of a bag (``xmetro_ros.ros.scan_io.iter_scans`` or ``read_scans``; injected so
     that this core module needs no ROS). The same table, input by input on Dask workers:
-    ``dataset_dask.load_inputs_dask``."""
+    ``loop.inputs_dask.load_inputs_dask``."""
     kind, art, fit = check_inputs(paths, artifact_spec, feature_names)
     return LoopData.concat([load_path(p, kind, art, fit, feature_names, read_bag) for p in paths])

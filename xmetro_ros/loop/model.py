@@ -54,7 +54,7 @@ def fit_family(
 
 @dataclass
 class GivenModel:
-    """A model directory loaded with ``xmetro_ros.inference.ModelSet`` (features must be computable here)."""
+    """A model directory loaded with ``xmetro_ros.judge.inference.ModelSet`` (features must be computable here)."""
 
     model_set: Any
 

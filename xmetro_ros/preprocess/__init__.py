@@ -26,6 +26,8 @@ Modules (one job each): :mod:`.config` (parameters, ``Prepared``, errors), :mod:
 :mod:`.grid` (organized path, numpy reference) and :mod:`.grid_kernels` (the same compiled), :mod:`.knn` and
 :mod:`.open3d_ref` (unorganized methods), :mod:`.normals` (``estimate_normals`` dispatcher), :mod:`.prepare`
 (``prepare_scan``).
+
+May import: scan.
 """
 
 from .config import GRID_BACKENDS, UNORGANIZED_METHODS, Prepared, PreprocessConfig, PreprocessError

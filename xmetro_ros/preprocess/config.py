@@ -6,8 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..geometry import HeadPose, PointGeometry
-from ..scanner import ScannerModel, ScanSettings
+from ..scan.geometry import HeadPose, PointGeometry
+from ..scan.scanner import ScannerModel, ScanSettings
 
 UNORGANIZED_METHODS = ("knn", "open3d")
 # Organized-grid implementations: "numba" (compiled kernels, xmetro_ros.preprocess.grid_kernels; default) and

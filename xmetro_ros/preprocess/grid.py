@@ -102,9 +102,9 @@ def _grid_outlier_mask(
 ) -> np.ndarray:
     """The grid outlier mask by ``backend`` ("numba": compiled kernels; "numpy"): bit-identical results."""
     if backend == "numba":
-        from . import grid_kernels
+        from .grid_kernels import grid_outliers as compiled_grid_outliers
 
-        return grid_kernels.grid_outliers(x, y, z, valid, min_offset_mm, offset_factor, gap_factor, scale_window)
+        return compiled_grid_outliers(x, y, z, valid, min_offset_mm, offset_factor, gap_factor, scale_window)
     if backend != "numpy":
         raise PreprocessError(f"grid backend must be one of {GRID_BACKENDS}, got {backend!r}")
     return _grid_outliers_planes(x, y, z, valid, min_offset_mm, offset_factor, gap_factor, scale_window)
@@ -115,9 +115,9 @@ def _grid_normal_planes(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(nx, ny, nz, quality) planes by ``backend`` ("numba" or "numpy"): bit-identical results."""
     if backend == "numba":
-        from . import grid_kernels
+        from .grid_kernels import grid_normals_planes
 
-        return grid_kernels.grid_normals_planes(x, y, z, valid, window)
+        return grid_normals_planes(x, y, z, valid, window)
     if backend != "numpy":
         raise PreprocessError(f"grid backend must be one of {GRID_BACKENDS}, got {backend!r}")
     return _grid_normals_planes(x, y, z, valid, window)[:4]

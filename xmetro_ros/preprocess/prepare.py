@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry import point_geometry
-from ..scan import Scan
-from ..scanner import ScannerModel
+from ..scan.geometry import point_geometry
+from ..scan.scan import Scan
+from ..scan.scanner import ScannerModel
 from .config import Prepared, PreprocessConfig, PreprocessError
 from .grid import _grid_normals_planes, _grid_outliers_planes, _planes
 from .knn import _knn_unorganized
@@ -21,13 +21,13 @@ def _prepare_grid_compiled(
     """The grid path of :func:`prepare_scan` with the compiled kernels: (outlier flat indices,
     kept flat indices, kept points (M, 3) float64, their normals (M, 3) float32 (NaN: undefined, sign the grid's)
     and quality (M,), number of valid cells). Same rules and results as the numpy branch there."""
-    from . import grid_kernels
+    from .grid_kernels import grid_outliers, kept_normals, planes
 
-    x, y, z, gvalid, n_valid = grid_kernels.planes(pts)
+    x, y, z, gvalid, n_valid = planes(pts)
     if n_valid == 0:
         raise PreprocessError(f"no finite point in the cloud ({gvalid.size} points, all NaN/inf)")
-    out_mask = grid_kernels.grid_outliers(x, y, z, gvalid, cfg.grid_min_offset_mm, cfg.grid_offset_factor,
-                                          cfg.grid_gap_factor, cfg.grid_scale_window)
+    out_mask = grid_outliers(x, y, z, gvalid, cfg.grid_min_offset_mm, cfg.grid_offset_factor,
+                             cfg.grid_gap_factor, cfg.grid_scale_window)
     outlier = np.flatnonzero(out_mask)
     if remove and outlier.size:
         for c in (x, y, z):
@@ -36,7 +36,7 @@ def _prepare_grid_compiled(
     n_kept = n_valid - outlier.size if remove else n_valid  # outliers are valid cells
     if n_kept < cfg.min_points:
         raise PreprocessError(f"only {n_kept} points left after outlier removal (need {cfg.min_points})")
-    index, normals, quality, points = grid_kernels.kept_normals(pts, x, y, z, gvalid, cfg.grid_window)
+    index, normals, quality, points = kept_normals(pts, x, y, z, gvalid, cfg.grid_window)
     return outlier, index, points, normals, quality, n_valid
 
 
@@ -107,9 +107,9 @@ def prepare_scan(
     geom = point_geometry(points, scan.pose, scanner.camera_mm, dtype=np.float32)
     # Orient toward the laser source (outward on the lit side of a closed artifact); undefined normals → L, q = 0.
     if grid and cfg.grid_backend == "numba":
-        from . import grid_kernels
+        from .grid_kernels import orient_rows
 
-        grid_kernels.orient_rows(normals, quality, geom.L)  # the same two rules in one compiled pass
+        orient_rows(normals, quality, geom.L)  # the same two rules in one compiled pass
     else:
         normals = np.ascontiguousarray(normals, dtype=np.float32)
         bad = ~np.isfinite(normals).all(axis=1)

@@ -18,10 +18,10 @@ from geometry_msgs.msg import Point, Pose, Quaternion
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 
-from ..geometry import HeadPose
 from ..msg import ScannerSettings
-from ..scan import Scan
-from ..scanner import ScanSettings, SettingsError
+from ..scan.geometry import HeadPose
+from ..scan.scan import Scan
+from ..scan.scanner import ScanSettings, SettingsError
 from .cloud import CloudFormatError, create_cloud_from_arrays, field_names, validate_cloud, xyz_fields
 
 __all__ = [
@@ -102,7 +102,7 @@ def pose_to_msg(pose: HeadPose) -> Pose:
 def pose7_to_matrix_mm(values: Iterable[float]) -> np.ndarray:
     """A pose parameter ``[x, y, z, qx, qy, qz, qw]`` (metres, quaternion in ROS order; normalised) → the (4, 4)
     rigid transform in millimetres. Raises ValueError on a wrong length, a non-finite value or a zero quaternion."""
-    from ..geometry import quat_to_matrix
+    from ..scan.geometry import quat_to_matrix
 
     v = np.asarray(list(values), dtype=np.float64)
     if v.shape != (7,) or not np.isfinite(v).all():

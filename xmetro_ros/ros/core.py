@@ -3,7 +3,7 @@ node's output messages, the history of judged scans and the two services' answer
 
 Shared by the live node (:mod:`xmetro_ros.ros.node`, in its worker thread) and ``xmetro predict`` (offline), so
 both produce the very same messages. Takes and returns ROS message objects (metres); the computation itself is
-the ROS-free :class:`xmetro_ros.scan_handler.ScanHandler` (millimetres). Never creates a DDS participant.
+the ROS-free :class:`xmetro_ros.judge.scan_handler.ScanHandler` (millimetres). Never creates a DDS participant.
 """
 
 from __future__ import annotations
@@ -18,13 +18,13 @@ from typing import Any
 import numpy as np
 from sensor_msgs.msg import PointCloud2
 
-from ..geometry import HeadPose
-from ..inference import LEGACY_SCANNER_ID, model_scanner_id
+from ..judge.inference import LEGACY_SCANNER_ID, model_scanner_id
+from ..judge.scan_handler import ScanError, ScanHandler, check_deadline
+from ..judge.scan_history import JudgedScan, ScanHistory, ServiceError, axes_from_mask, explain_rows, select_rows
+from ..monitor.reference_check import ReferenceChecker, ReferenceResult, ReferenceSpec, live_candidates
 from ..msg import ReferenceCheck, ScannerSettings, ScanQuality
-from ..reference_check import ReferenceChecker, ReferenceResult, ReferenceSpec, live_candidates
-from ..scan_handler import ScanError, ScanHandler, check_deadline
-from ..scan_history import JudgedScan, ScanHistory, ServiceError, axes_from_mask, explain_rows, select_rows
-from ..scanner import ScannerModel, ScanSettings, SettingsError
+from ..scan.geometry import HeadPose
+from ..scan.scanner import ScannerModel, ScanSettings, SettingsError
 from ..srv import Explain, RecommendSettings
 from .cloud import CloudFormatError, validate_cloud, xyz_fields
 from .convert import cloud_to_scan, m_to_mm, pose7_to_matrix_mm, settings_from_msg, settings_to_msg, stamp_to_ns
@@ -89,8 +89,8 @@ class XmetroCore:
         self.model: Any = None
         self.degraded = ""
         try:
-            from ..features import REGISTRY
-            from ..inference import ModelSet
+            from ..judge.features import REGISTRY
+            from ..judge.inference import ModelSet
 
             model = ModelSet.load(values["model_dir"] or None, threads=int(values["inference_threads"]))
             model.check_features(REGISTRY)
@@ -115,8 +115,8 @@ class XmetroCore:
         ``resources.pose_model_path`` from ``model_dir`` and ``pose_model_dir``. It must take the primary's features
         and be trained for the same scanner; a failure leaves the node judging with the primary alone (logged, on
         /diagnostics)."""
-        from ..inference import load_pose_model
-        from ..resources import pose_model_path
+        from ..judge.inference import load_pose_model
+        from ..scan.resources import pose_model_path
 
         v = self.values
         path = str(v.get("pose_model_dir", ""))
@@ -225,7 +225,7 @@ class XmetroCore:
 
         ``reference``: the cloud is a scan of the reference sphere (``reference_scan`` topic): once judged it is
         also checked against the sphere and fed to the drift monitor (``CoreOutput.reference``; see
-        :mod:`xmetro_ros.reference_check`). Without a configured reference (``reference_radius`` 0) it is judged
+        :mod:`xmetro_ros.monitor.reference_check`). Without a configured reference (``reference_radius`` 0) it is judged
         like any scan and its ReferenceCheck says so.
 
         ``deadline`` (``time.monotonic()`` seconds; None = no bound): checked between stages; past it the scan is
@@ -322,7 +322,7 @@ class XmetroCore:
         the error, never raised: the scan's other outputs stand."""
         if self.cad is None:  # none configured, or it failed to load (said at start-up and on /diagnostics)
             return None, None, "", ""
-        from ..cad_judge import cad_deviation
+        from ..parts.cad_judge import cad_deviation
 
         try:
             pose = pose7_to_matrix_mm(self.values["cad_pose"])
@@ -376,12 +376,12 @@ class XmetroCore:
         region of a judged scan (never raises but for a cancel: failures → success false).
 
         ``req``: a RecommendSettings request or the action's goal (same fields); ``progress`` / ``cancelled``: see
-        :func:`xmetro_ros.recommend.recommend` (the action's feedback and cancel).
+        :func:`xmetro_ros.plan.recommend.recommend` (the action's feedback and cancel).
 
         Raises:
             RecommendCancelled: ``cancelled()`` became true during the search.
         """
-        from ..recommend import RecommendCancelled, recommend
+        from ..plan.recommend import RecommendCancelled, recommend
 
         base = RecommendSettings.Response()
         base.model_id = self.search_model.id if self.model is not None else ""
@@ -440,7 +440,7 @@ def load_cad(values: dict[str, Any]) -> tuple[Any, str]:
     try:
         import open3d  # noqa: F401  (closest points and ray casting of the mesh)
 
-        from ..mesh import MeshArtifact
+        from ..scan.mesh import MeshArtifact
 
         return MeshArtifact.from_file(path), ""
     except ImportError as e:
@@ -451,7 +451,7 @@ def load_cad(values: dict[str, Any]) -> tuple[Any, str]:
 
 def reference_checker(values: dict[str, Any]) -> ReferenceChecker | None:
     """The node's reference checker from its parameters (SI), or None when ``reference_radius`` is 0."""
-    from ..drift import DriftConfig
+    from ..monitor.drift import DriftConfig
 
     radius = float(values.get("reference_radius", 0.0) or 0.0)
     if radius <= 0:

@@ -21,7 +21,7 @@ from __future__ import annotations
 import os
 from collections.abc import Mapping
 
-from ..resources import config_path
+from ..scan.resources import config_path
 
 __all__ = [
     "DDS_ENV_KEYS",

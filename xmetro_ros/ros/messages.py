@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 from geometry_msgs.msg import Quaternion
 
-from .. import flags as fl
+from ..judge import flags as fl
 from ..msg import ReferenceCheck, ScannerSettings, ScanQuality, SettingsCandidate
 from ..srv import Explain, RecommendSettings
 from .convert import mm_to_m, settings_to_msg
@@ -52,7 +52,7 @@ def new_quality(header: Any, model_id: str, settings: ScannerSettings | None, de
 
 
 def fill_quality(q: ScanQuality, summary: dict[str, Any]) -> ScanQuality:
-    """Copy a judged scan's summary (:meth:`xmetro_ros.scan_handler.ScanHandler.summarize`, mm) into ``q`` (m)."""
+    """Copy a judged scan's summary (:meth:`xmetro_ros.judge.scan_handler.ScanHandler.summarize`, mm) into ``q`` (m)."""
     q.verdict = int(summary["verdict"])
     q.error_code = ScanQuality.ERROR_NONE
     q.message = summary["message"]
@@ -106,7 +106,7 @@ def failed_response(response: Any, message: str) -> Any:
 
 
 def explain_response(result: dict[str, Any], model_id: str, message: str) -> Explain.Response:
-    """``~/explain``'s answer from :func:`xmetro_ros.scan_history.explain_rows`'s result (mm → m)."""
+    """``~/explain``'s answer from :func:`xmetro_ros.judge.scan_history.explain_rows`'s result (mm → m)."""
     resp = Explain.Response()
     resp.model_id = model_id
     resp.success = True
@@ -132,7 +132,7 @@ def quaternion_msg(xyzw: Any) -> Quaternion:
 
 def recommend_response(rec: Any, frame_id: str, stamp_ns: int, scanner_id: str, tolerance_mm: float,
                        model_id: str) -> RecommendSettings.Response:
-    """``~/recommend_settings``' answer from a :class:`xmetro_ros.recommend.Recommendation` (mm → m); candidate
+    """``~/recommend_settings``' answer from a :class:`xmetro_ros.plan.recommend.Recommendation` (mm → m); candidate
     settings are stamped like the judged scan (``stamp_ns``, ``frame_id``)."""
 
     def settings_msg(cand: Any) -> ScannerSettings:

@@ -58,11 +58,11 @@ from . import params as node_params
 from .convert import stamp_to_ns
 from .core import XmetroCore
 from .diagnostics import DiagnosticsState
+from .rclpy_util import READY_MESSAGE
 from .services import ServiceHandlers
 from .worker import ScanWorker
 
 __all__ = [
-    "READY_MESSAGE",
     "XmetroNode",
     "XmetroWiring",
     "main",
@@ -70,9 +70,6 @@ __all__ = [
     "scan_qos",
     "settings_qos",
 ]
-
-READY_MESSAGE = "xmetro_node ready"
-
 
 def scan_qos(reliability: str = "best_effort", depth: int = 5) -> QoSProfile:
     """Sensor-data QoS of the ``scan`` subscription. Best-effort (the default) matches best-effort drivers and

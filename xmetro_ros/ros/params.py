@@ -15,8 +15,8 @@ from typing import Any
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 
-from .. import flags as fl
-from ..scan_handler import HandlerParams
+from ..judge import flags as fl
+from ..judge.scan_handler import HandlerParams
 from .convert import m_to_mm
 
 __all__ = ["PARAMS", "ParamSpec", "declare_all", "handler_params", "validate", "values_from_node"]
@@ -120,7 +120,7 @@ PARAMS: tuple[ParamSpec, ...] = (
               "the certified radius (no known position; a drift that shifts the sphere is then invisible)",
               read_only=True),
     ParamSpec("reference_warmup", 10, "scans", "reference scans that set the in-control level of the drift "
-              "monitor (EWMA + CUSUM, xmetro_ros/drift.py)", 3, 1000, read_only=True),
+              "monitor (EWMA + CUSUM, xmetro_ros/monitor/drift.py)", 3, 1000, read_only=True),
     ParamSpec("reference_max_mismatch", 0.0005, "m", "a reference scan whose median |error| along the normal "
               "exceeds this does not show the declared sphere: MISMATCH, not monitored", 1e-6, 0.1,
               read_only=True),
@@ -131,7 +131,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("cad_pose", [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], "m, quaternion", "pose of the CAD part in the scan "
               "frame (part -> scan): x, y, z, qx, qy, qz, qw; applies from the next scan"),
     ParamSpec("cad_register", False, "", "refine cad_pose on each scan by point-to-plane ICP on the compensated "
-              "points (xmetro_ros/registration.py; the fit is logged and the registered pose is used for that "
+              "points (xmetro_ros/parts/registration.py; the fit is logged and the registered pose is used for that "
               "scan's map and its recommendation's occlusion)"),
 )
 _BY_NAME = {p.name: p for p in PARAMS}
@@ -207,7 +207,7 @@ def values_from_node(node: Any) -> dict[str, Any]:
 
 
 def handler_params(v: dict[str, Any]) -> HandlerParams:
-    """The core's :class:`~xmetro_ros.scan_handler.HandlerParams` (mm) from the node's parameter values (SI)."""
+    """The core's :class:`~xmetro_ros.judge.scan_handler.HandlerParams` (mm) from the node's parameter values (SI)."""
     return HandlerParams(
         tolerance_mm=float(m_to_mm(float(v["tolerance"]))),
         decision_rule=str(v.get("decision_rule", "guard_banded")),

@@ -18,7 +18,12 @@ from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 
 from .dds_env import apply_requested_ros_env, ros_env
 
-__all__ = ["NodeMixin", "NodeProcess", "NodeSpinner", "ServiceTimeoutError", "call_service", "new_context", "wait_for"]
+__all__ = ["READY_MESSAGE", "NodeMixin", "NodeProcess", "NodeSpinner", "ServiceTimeoutError", "call_service",
+           "new_context",
+           "wait_for"]
+
+# The line xmetro_node logs once it is up (ros/node.py); NodeProcess waits for it.
+READY_MESSAGE = "xmetro_node ready"
 
 # Base of the mixins that make up xmetro_node's wiring (mixed into rclpy Node subclasses, plain and lifecycle):
 # type-checked as a Node, nothing at run time.
@@ -128,7 +133,7 @@ def call_service(client: Any, request: Any, timeout: float = 60.0, attempt_timeo
 class NodeProcess:
     """Run ``xmetro_node`` as a child process (``python -m xmetro_ros.ros.node``) with the localhost ROS environment.
 
-    ``start()`` launches it and waits for its ready log line (``node.READY_MESSAGE``); ``stop()`` sends SIGINT and
+    ``start()`` launches it and waits for its ready log line (``READY_MESSAGE``); ``stop()`` sends SIGINT and
     waits (SIGKILL after ``stop_timeout``). Its combined stdout/stderr lines are kept in ``lines``. Usable as a
     context manager.
 
@@ -176,8 +181,6 @@ class NodeProcess:
         """Launch and wait for the ready line; raise RuntimeError (with the output) if it exits or times out."""
         import os
         import subprocess
-
-        from .node import READY_MESSAGE
 
         env = ros_env(self.domain_id) if self.base_env is None else dict(self.base_env)
         env.update(self.extra_env)

@@ -31,13 +31,13 @@ from typing import Any
 
 import numpy as np
 
-from ..artifacts import artifact_from_dict
 from ..bag import qos_profiles
 from ..bag.reader import BagReader
 from ..bag.writer import BagWriter
-from ..geometry import HeadPose
-from ..scan import Scan
-from ..scanner import ScannerModel, ScanSettings
+from ..scan.artifact_specs import artifact_from_dict
+from ..scan.geometry import HeadPose
+from ..scan.scan import Scan
+from ..scan.scanner import ScannerModel, ScanSettings
 
 __all__ = [
     "MANIFEST_RECORD",

@@ -43,7 +43,7 @@ class ServiceHandlers(NodeMixin):
     def _execute_recommend(self, goal: Any) -> Any:
         """``~/recommend_settings`` action: the service's search with feedback; cancel → CANCELED, a refused
         request → ABORTED (result success false, message says why)."""
-        from ..recommend import RecommendCancelled, RecommendProgress
+        from ..plan.recommend import RecommendCancelled, RecommendProgress
 
         result = RecommendSettingsAction.Result()
         core = self.core

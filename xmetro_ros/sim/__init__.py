@@ -2,6 +2,8 @@
 
 Public API: ``simulate_scan``, ``EFFECTS`` (name → effect class, in application order), ``UnknownEffectError``,
 ``EffectConfigError``; the study campaign lives in ``xmetro_ros.sim.campaign``. See docs/simulator.md.
+
+May import: scan.
 """
 
 from .effect import Effect, EffectConfigError, SimContext, UnknownEffectError

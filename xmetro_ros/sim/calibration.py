@@ -8,7 +8,7 @@ Method (the same for measured and simulated profiles):
 3. report the RMS of all residuals of each bin over all profiles (um).
 
 Measured: the 15 p*.yml profiles of ``../shared/data/measured/atc5_profiler_sphere_r40`` (sensor frame, x and z,
-mm), read with ``xmetro_ros.measured.load_atc5``. Simulated: a sphere of radius 40 mm scanned with the default
+mm), read with ``xmetro_ros.scan.measured.load_atc5``. Simulated: a sphere of radius 40 mm scanned with the default
 settings and effects by ``calibration_scanner()`` (the default model moved to the AT C5's longer stand-off), 15
 profiles picked so that their cut radii match the measured fitted radii (on the camera's +Y side of the centre),
 each fitted in the head XZ plane (the laser plane).
@@ -23,8 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from ..artifacts import Sphere
-from ..scanner import ScannerModel
+from ..scan.artifacts import Sphere
+from ..scan.scanner import ScannerModel
 from .scanner_sim import simulate_scan
 
 __all__ = [
@@ -58,9 +58,9 @@ def load_atc5_profiles(directory: str | Path) -> list[np.ndarray]:
     """The 15 AT C5 profiles as (N, 2) arrays of sensor-frame (x, z), mm, in p1..p15 order, uncleaned (the
     cleaning is ``clean_and_fit``'s, applied alike to simulated profiles).
 
-    Reads them with ``xmetro_ros.measured.load_atc5`` (FEAT's loader). Raises FileNotFoundError when the directory
+    Reads them with ``xmetro_ros.scan.measured.load_atc5`` (FEAT's loader). Raises FileNotFoundError when the directory
     has no p*.yml, ``measured.MeasuredDataError`` when a file is malformed."""
-    from ..measured import load_atc5
+    from ..scan.measured import load_atc5
 
     directory = Path(directory)
     if not any(directory.glob("p*.yml")):

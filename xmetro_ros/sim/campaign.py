@@ -2,7 +2,8 @@
 
 Head poses ("train where you search"): by default every scan looks straight down (the study's set-up). With
 ``poses`` the campaign also scans from tilted / turned heads, the orientations the rescan recommender explores
-(``pose_grid()`` = ``recommend.orientation_grid``'s defaults: tilts of ±15° about head X and Y, turns of ±90° about
+(``pose_grid()`` = ``scan.geometry.orientation_grid`` with the recommender's defaults: tilts of ±15° about head X and
+Y, turns of ±90° about
 head Z), each rotation applied to the looking-down start pose about the top of the artifact (``campaign_pose``),
 as the recommender turns the head about a region. A training profile uses it through its campaign arguments, e.g.
 ``campaign={"sphere_diameters": (35, 45, 55), "cylinder": True, "poses": pose_grid(), "pose_mode": "cycle"}``
@@ -17,11 +18,11 @@ from typing import Any
 
 import numpy as np
 
-from ..artifacts import Artifact, Cylinder, Plane, Sphere
-from ..geometry import HeadPose
-from ..scan import Scan
-from ..scanner import ScannerModel, ScanSettings
-from .effects import resolve_effects
+from ..scan.artifacts import Artifact, Cylinder, Plane, Sphere
+from ..scan.geometry import HeadPose, orientation_grid
+from ..scan.scan import Scan
+from ..scan.scanner import ScannerModel, ScanSettings
+from .effects import EFFECTS, resolve_effects
 from .scanner_sim import DEFAULT_EXTENT_MM, _bounds_corners, scan_grid, simulate_scan
 
 __all__ = ["CYLINDER_RADIUS_MM", "CampaignItem", "campaign_manifest", "campaign_pose", "item_seed", "pose_grid",
@@ -32,11 +33,10 @@ CYLINDER_RADIUS_MM = 20.0
 
 def pose_grid(max_tilt: float = 0.2618, tilt_steps: int = 3, max_turn: float = 1.5708,
               turn_steps: int = 3) -> list[np.ndarray]:
-    """Head-frame rotations (3x3) of the recommender's search grid (``recommend.orientation_grid``; defaults: its
+    """Head-frame rotations (3x3) of the recommender's search grid (``scan.geometry.orientation_grid``, which
+    ``plan.recommend`` searches; defaults: its
     defaults, 27 rotations, identity included): tilts about head X and Y in ±``max_tilt``, turns about head Z in
     ±``max_turn`` (radians)."""
-    from ..recommend import orientation_grid  # local: recommend is a core module above sim
-
     return orientation_grid(max_tilt, tilt_steps, max_turn, turn_steps)
 
 
@@ -189,8 +189,6 @@ def campaign_manifest(
     Holds no paths."""
     scanner = items[0].scanner if items else ScannerModel.load()
     fx = resolve_effects(scanner.effects, effects)
-    from . import EFFECTS  # local: avoid an import cycle at module load
-
     return {
         "generator": "xmetro_ros.sim.campaign",
         "seed": int(seed),

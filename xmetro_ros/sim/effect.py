@@ -20,9 +20,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from ..artifacts import Artifact
-from ..geometry import HeadPose
-from ..scanner import ScannerModel, ScanSettings
+from ..scan.artifacts import Artifact
+from ..scan.geometry import HeadPose
+from ..scan.scanner import ScannerModel, ScanSettings
 
 __all__ = ["Effect", "EffectConfigError", "SimContext", "UnknownEffectError"]
 

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..artifacts import Sphere
-from ..scanner import ScannerModel
+from ..scan.artifacts import Sphere
+from ..scan.scanner import ScannerModel
 from .effect import SimContext
 from .scanner_sim import simulate_scan
 

@@ -1,6 +1,6 @@
 """The virtual laser line scanner: casts the whole organized grid of laser rays at once and applies the effects.
 
-Geometry (head frame, see xmetro_ros.geometry): the laser source sits at the head origin; the fan lies in the head
+Geometry (head frame, see xmetro_ros.scan.geometry): the laser source sits at the head origin; the fan lies in the head
 XZ plane, pointing along head -Z; profile i is taken after the head moved ``i / direction_density`` mm along head +Y;
 within a profile, ray j passes through head X = ``j / lateral_density`` mm on the reference plane (stand-off
 ``scanner.standoff_mm``), so the lateral spacing is 1 / lateral_density at the reference distance. The camera sits
@@ -14,11 +14,11 @@ from typing import Any
 
 import numpy as np
 
-from ..artifacts import Artifact, ArtifactSpecError, Cylinder, Plane, Sphere
-from ..geometry import HeadPose
-from ..mesh import MeshArtifact
-from ..scan import Scan
-from ..scanner import ScannerModel, ScanSettings, SettingsError
+from ..scan.artifacts import Artifact, ArtifactSpecError, Cylinder, Plane, Sphere
+from ..scan.geometry import HeadPose
+from ..scan.mesh import MeshArtifact
+from ..scan.scan import Scan
+from ..scan.scanner import ScannerModel, ScanSettings, SettingsError
 from .effect import SimContext
 from .effects import EFFECTS, resolve_effects
 
@@ -178,7 +178,7 @@ def simulate_scan(
     """Simulate one organized scan of ``artifact``.
 
     Args:
-        artifact: Sphere, Cylinder, Plane or MeshArtifact (any part, xmetro_ros.mesh) in the scan frame (mm).
+        artifact: Sphere, Cylinder, Plane or MeshArtifact (any part, xmetro_ros.scan.mesh) in the scan frame (mm).
         settings: lateral density (/mm), direction density (/mm), exposure (ms); validated against the scanner.
         scanner: scanner model; None → ``ScannerModel.load()``.
         pose: head pose at scan start; None → looking down from the scanner's stand-off, covering the artifact.
@@ -189,7 +189,7 @@ def simulate_scan(
         keep_context: put the SimContext (per-effect contributions) in ``scan.meta["_context"]`` (not JSON-safe;
             for figures and tests).
         window: (s_lo, s_hi, u_lo, u_hi) mm in the head frame of the start pose: simulate only those rows and
-            columns of the grid (see ``scan_grid``; a region's re-simulation, xmetro_ros.resim). None → all.
+            columns of the grid (see ``scan_grid``; a region's re-simulation, xmetro_ros.plan.resim). None → all.
 
     Returns:
         Scan with points (H, W, 3) mm (NaN = no return), fields intensity, line, t (s), u (mm) as float32,

@@ -50,8 +50,8 @@ from typing import Any
 
 import numpy as np
 
-from .geometry import HeadPose, matrix_to_quat
-from .scanner import ScannerModel, ScanSettings
+from ..scan.geometry import HeadPose, matrix_to_quat, orientation_grid
+from ..scan.scanner import ScannerModel, ScanSettings
 
 __all__ = [
     "Candidate",
@@ -59,9 +59,7 @@ __all__ = [
     "RecommendProgress",
     "Recommendation",
     "coverage_mask",
-    "orientation_grid",
     "recommend",
-    "rotation_xyz",
 ]
 
 
@@ -137,22 +135,6 @@ class Recommendation:
     uses_uncertainty: bool = False  # False: U = 0, the ranking ignores noise
     n_out_of_domain: int = 0      # candidates discarded as outside the model's domain
     top: Candidate | None = None  # the best-ranked candidate (= best unless kept_current)
-
-
-def rotation_xyz(rx: float, ry: float, rz: float) -> np.ndarray:
-    """R = Rz(rz) · Ry(ry) · Rx(rx) (radians), a rotation in the head frame."""
-    cx, sx, cy, sy, cz, sz = np.cos(rx), np.sin(rx), np.cos(ry), np.sin(ry), np.cos(rz), np.sin(rz)
-    r_x = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
-    r_y = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
-    r_z = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
-    return r_z @ r_y @ r_x
-
-
-def orientation_grid(max_tilt: float, tilt_steps: int, max_turn: float, turn_steps: int) -> list[np.ndarray]:
-    """Head-frame rotations of the search; ``max_* <= 0`` or 1 step → that axis is not searched."""
-    tilts = np.linspace(-max_tilt, max_tilt, tilt_steps) if max_tilt > 0 and tilt_steps > 1 else np.zeros(1)
-    turns = np.linspace(-max_turn, max_turn, turn_steps) if max_turn > 0 and turn_steps > 1 else np.zeros(1)
-    return [rotation_xyz(a, b, c) for c in turns for a in tilts for b in tilts]
 
 
 def coverage_mask(ctx: Any, grazing_incidence_deg: float, grazing_view_deg: float, occluder: Any = None
@@ -295,7 +277,7 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
             the model's domain).
         RecommendCancelled: ``cancelled()`` became true.
     """
-    from .features import REGISTRY, compute_features
+    from ..judge.features import REGISTRY, compute_features
 
     if rank_by not in RANK_BY:
         raise ValueError(f"rank_by must be one of {', '.join(RANK_BY)}, got {rank_by!r}")

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from .fitting import fit_sphere
+from ..scan.fitting import fit_sphere
 
 __all__ = ["SphereFigures", "probing", "spacing_error", "summarize"]
 

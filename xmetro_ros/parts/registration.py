@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
-    from .mesh import MeshArtifact
+    from ..scan.mesh import MeshArtifact
 
 __all__ = ["Registration", "perturbed", "register_to_cad"]
 

@@ -27,12 +27,12 @@ from typing import Any
 
 import numpy as np
 
-from .artifacts import Sphere
+from ..scan.artifacts import Sphere
+from ..scan.fitting import FitError, fit_sphere, fit_sphere_center
+from ..scan.geometry import vec3
+from ..scan.scan import Scan
+from ..scan.scanner import SETTING_NAMES
 from .campaign_file import Campaign, CampaignError, Placement, Recording
-from .fitting import FitError, fit_sphere, fit_sphere_center
-from .geometry import vec3
-from .scan import Scan
-from .scanner import SETTING_NAMES
 from .vdi2634 import SphereFigures, probing, spacing_error
 
 __all__ = ["CampaignData", "CampaignScan", "DataChecks", "assemble"]
@@ -109,7 +109,7 @@ def _gate(radius: float) -> float:
 
 def _median_normal_angle(scan: Scan, sphere: Sphere, scanner: Any) -> float:
     """Median angle (deg) between the estimated normals of the scan's points and the sphere's nominal normals."""
-    from .preprocess import PreprocessConfig, prepare_scan
+    from ..preprocess import PreprocessConfig, prepare_scan
 
     prep = prepare_scan(scan, PreprocessConfig(), scanner=scanner)
     if len(prep) == 0:

@@ -56,7 +56,7 @@ def explain(
     seed: int = 0,
     output: str = "error",
 ) -> ShapResult:
-    """SHAP values of ``model_set`` (a :class:`~xmetro_ros.inference.ModelSet`) for the rows X (P, F).
+    """SHAP values of ``model_set`` (a :class:`~xmetro_ros.judge.inference.ModelSet`) for the rows X (P, F).
 
     output: "error" (the predicted error) or "uncertainty" (its expanded uncertainty U, which features make a point
     uncertain; needs a calibrated model set). Additivity holds for either.

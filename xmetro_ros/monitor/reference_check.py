@@ -3,7 +3,8 @@
 A cell re-scans a reference artifact — a certified sphere in a fixture — every so often. For each such *reference
 scan* judged by the node, :class:`ReferenceChecker` compares, point by point, the **actual** error (nominal −
 measured against the certified sphere, mm, scan frame) with the model's prediction and its interval U, and feeds
-the per-scan statistics to a :class:`xmetro_ros.drift.DriftMonitor` (EWMA + CUSUM on the residual's mean and RMS and
+the per-scan statistics to a :class:`xmetro_ros.monitor.drift.DriftMonitor` (EWMA + CUSUM on the residual's mean and
+RMS and
 on interval coverage). When the monitor says WARN, a screening names the candidate variable most associated with
 the residual on that scan (the "candidate effect"): Spearman's rank correlation of the residual along the normal
 with each candidate a live node can compute (profile time ``t``, position along the line ``u``, ``intensity``,
@@ -27,9 +28,9 @@ from typing import Any
 import numpy as np
 from scipy.stats import spearmanr
 
-from .artifacts import Sphere
+from ..scan.artifacts import Sphere
+from ..scan.targets import FitError, errors_with_fit
 from .drift import DriftConfig, DriftMonitor, DriftState
-from .targets import FitError, errors_with_fit
 
 __all__ = ["CANDIDATE_ALPHA", "CANDIDATE_MIN_RHO", "ReferenceChecker", "ReferenceResult", "ReferenceSpec",
            "live_candidates", "screen_candidates"]

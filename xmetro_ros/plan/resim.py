@@ -37,10 +37,10 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .artifacts import Artifact
-from .geometry import HeadPose
-from .scan import Scan
-from .scanner import ScannerModel, ScanSettings
+from ..scan.artifacts import Artifact
+from ..scan.geometry import HeadPose
+from ..scan.scan import Scan
+from ..scan.scanner import ScannerModel, ScanSettings
 
 __all__ = ["ActualError", "GroundTruth", "Region", "Verification", "resimulate", "resimulate_many", "verify"]
 
@@ -193,7 +193,7 @@ def _reference_points(truth: GroundTruth, region: Region) -> np.ndarray:
     returns in the ball."""
     if region.points is not None:
         return region.points
-    from .sim import simulate_scan
+    from ..sim import simulate_scan
 
     pose, win = _window(truth, region, truth.settings, truth.pose)
     scan = simulate_scan(truth.artifact, truth.settings, scanner=truth.scanner, pose=pose, effects=truth.effects,
@@ -222,7 +222,7 @@ def resimulate(truth: GroundTruth, region: Region, settings: ScanSettings, pose:
     Raises:
         ValueError: the set-up sees nothing of the region's box (out of the fan, or behind the head).
     """
-    from .sim import simulate_scan
+    from ..sim import simulate_scan
 
     seeds = list(seeds) if seeds is not None else resim_seeds(truth, n_seeds)
     ref = _reference_points(truth, region) if reference is None else reference

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from .mesh import MeshArtifact
+    from ..scan.mesh import MeshArtifact
 
 __all__ = ["REGIONS", "label_regions"]
 

@@ -5,7 +5,7 @@
     a second "pose" model set when the primary's domain does not hold the scan and its own does:
     :meth:`ScanHandler.route`) → ONNX Runtime inference (x, y, z) and, with a
     calibrated model set, the expanded uncertainty U (95 %) per axis in the same call (same PointNet sets:
-    ``ModelSet.predict_with_uncertainty``) → flags and ISO 14253-1 decision classes (:mod:`xmetro_ros.flags`) →
+    ``ModelSet.predict_with_uncertainty``) → flags and ISO 14253-1 decision classes (:mod:`xmetro_ros.judge.flags`) →
     verdict → quality summary.
 
 Without a calibration U is NaN and every predicted point carries NO_UNCERTAINTY (and is UNDECIDED under the
@@ -23,9 +23,9 @@ from typing import Any
 
 import numpy as np
 
+from ..scan.scan import Scan
+from ..scan.scanner import ScannerModel, SettingsError
 from . import flags as fl
-from .scan import Scan
-from .scanner import ScannerModel, SettingsError
 
 __all__ = [
     "NO_DECISION",
@@ -163,14 +163,14 @@ def warm_up() -> float:
     (machine load) on the very first run of an installation (docs/node.md). Returns the seconds taken."""
     import time
 
+    from ..preprocess import curvature, grid_kernels
     from . import scan_stats
-    from .preprocess import curvature, grid_kernels
 
     t = time.perf_counter()
     grid_kernels.warm_up()
     curvature.grid_mean_curvature(np.zeros((1, 3)), np.ones((1, 3), np.float32), np.zeros(1, np.int64), (2, 2), 1.0,
                                   1.0)
-    from .preprocess.knn import _knn_normals
+    from ..preprocess.knn import _knn_normals
 
     _knn_normals(np.eye(3), np.arange(3), np.zeros((3, 3)), np.tile(np.arange(3), (3, 1)), np.ones(3, bool), 1.0)
     flags = np.array([0, 1, 3, 64], np.uint16)
@@ -273,7 +273,7 @@ class ScanHandler:
 
 
     def preprocess_config(self) -> Any:
-        from .preprocess import PreprocessConfig
+        from ..preprocess import PreprocessConfig
 
         return PreprocessConfig(nb_neighbors=self.params.outlier_nb_neighbors, std_ratio=self.params.outlier_std_ratio)
 
@@ -288,8 +288,8 @@ class ScanHandler:
             ScanError: with the ScanQuality error code (TOO_MANY_POINTS, NO_VALID_POINTS, INVALID_SETTINGS,
                 MISSING_INPUT_FIELD, MODEL_UNAVAILABLE, TIMEOUT).
         """
+        from ..preprocess import PreprocessError, prepare_scan
         from .features import FeatureContext, MissingFieldError, compute_features
-        from .preprocess import PreprocessError, prepare_scan
 
         p = self.params
         if self.model is None:
@@ -406,7 +406,7 @@ class ScanHandler:
         dom = getattr(model, "shape_domain", None)
         if dom is None:
             return None
-        from .preprocess.curvature import mean_curvature
+        from ..preprocess.curvature import mean_curvature
 
         lo, hi, radius = dom
         m = self.params.domain_margin * (hi - lo)
@@ -424,7 +424,8 @@ class ScanHandler:
         when given; ``U`` (Q, 3): finite U of the predicted points that have one; ``decisions`` (P,): the class of
         each finite prediction; ``note``: added to the message (why there is no U); ``model_id``: the model set
         that judged (default: the primary's id). Compiled one-pass statistics
-        (xmetro_ros.scan_stats), the same numbers as numpy's ``count_nonzero`` / ``flag_counts`` / ``mean(axis=0)``
+        (xmetro_ros.judge.scan_stats), the same numbers as numpy's ``count_nonzero`` / ``flag_counts`` /
+        ``mean(axis=0)``
         / ``percentile(95, axis=0)`` (tested)."""
         from .scan_stats import abs_error_stats, flag_tally
 

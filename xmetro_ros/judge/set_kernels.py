@@ -1,4 +1,4 @@
-"""Compiled (numba) row moves around the ONNX call of :class:`xmetro_ros.inference.ModelSet`: the finite-row test,
+"""Compiled (numba) row moves around the ONNX call of :class:`xmetro_ros.judge.inference.ModelSet`: the finite-row test,
 the feature rows into PointNet set order, and the per-slot predictions back to point order.
 
 Why compiled: numpy needs a boolean (M, F) temporary and a reduction for the finite test, a fancy-index gather
@@ -93,7 +93,7 @@ def _to_sets_rows(X: np.ndarray, rows: np.ndarray, pos: np.ndarray, order: np.nd
 def to_sets(X: np.ndarray, pos: np.ndarray, order: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
     """The sets laid end to end, C-contiguous float32: X (P, F) → (S, F) with row d = X[order[d]] (``rows``: the
     partition is of the points ``rows`` of X, row d = X[rows[order[d]]]); X (Q, P, F) → (Q, S, F), each version
-    alike. ``order``, ``pos``: :func:`xmetro_ros.pointsets.set_order` of P (of len(rows))."""
+    alike. ``order``, ``pos``: :func:`xmetro_ros.judge.pointsets.set_order` of P (of len(rows))."""
     p = X.shape[-2] if rows is None else len(rows)
     if len(pos) != p or len(order) < p:
         raise ValueError(f"to_sets: {p} points but a partition of {len(pos)} in {len(order)} slots")

@@ -26,7 +26,7 @@ PACKAGE = "xmetro_ros"
 
 def package_dir() -> Path:
     """Directory of the installed (or checked-out) ``xmetro_ros`` package."""
-    return Path(__file__).resolve().parent
+    return Path(__file__).resolve().parent.parent
 
 
 def repo_root() -> Path | None:

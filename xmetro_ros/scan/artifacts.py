@@ -13,7 +13,7 @@ import numpy as np
 
 from .geometry import unit
 
-__all__ = ["Artifact", "ArtifactSpecError", "Cylinder", "Plane", "Sphere", "parse_artifact"]
+__all__ = ["Artifact", "ArtifactSpecError", "Cylinder", "Plane", "Sphere"]
 
 
 class ArtifactSpecError(ValueError):
@@ -187,67 +187,3 @@ class Plane(Artifact):
 
     def to_dict(self) -> dict:
         return {"kind": "plane", "point": [float(x) for x in self.point], "normal": [float(x) for x in self.n]}
-
-
-def artifact_from_dict(d: dict) -> Artifact:
-    """Inverse of ``Artifact.to_dict``."""
-    kind = d.get("kind")
-    if kind == "sphere":
-        return Sphere(float(d["radius"]), tuple(d.get("center", (0, 0, 0))))
-    if kind == "cylinder":
-        return Cylinder(float(d["radius"]), tuple(d.get("center", (0, 0, 0))), tuple(d.get("axis", (0, 1, 0))))
-    if kind == "plane":
-        return Plane(tuple(d.get("point", (0, 0, 0))), tuple(d.get("normal", (0, 0, 1))))
-    if kind == "mesh":  # a triangle mesh (xmetro_ros.mesh; its queries need open3d)
-        from .mesh import mesh_from_dict
-
-        return mesh_from_dict(d)
-    raise ArtifactSpecError(f"unknown artifact kind {kind!r} (known: sphere, cylinder, plane, mesh)")
-
-
-def parse_artifact(spec: str) -> tuple[Artifact, bool]:
-    """Parse ``sphere:radius=40[,center=x;y;z|center=fit]``, ``cylinder:radius=20[,center=..][,axis=x;y;z]`` or
-    ``plane[:point=..,normal=..]`` (mm). Returns the artifact and whether its centre is to be fitted
-    (``center=fit``: centre fitted with the nominal radius fixed)."""
-    if not isinstance(spec, str) or not spec.strip():
-        raise ArtifactSpecError("empty artifact specification")
-    kind, _, rest = spec.strip().partition(":")
-    kind = kind.strip().lower()
-    opts: dict[str, str] = {}
-    for part in filter(None, (p.strip() for p in rest.split(","))):
-        key, eq, val = part.partition("=")
-        if not eq:
-            raise ArtifactSpecError(f"artifact option {part!r} in {spec!r} is not key=value")
-        opts[key.strip().lower()] = val.strip()
-
-    def vec(name: str, default: tuple[float, float, float]) -> tuple[float, float, float]:
-        if name not in opts:
-            return default
-        try:
-            v = tuple(float(x) for x in opts[name].split(";"))
-        except ValueError as e:
-            raise ArtifactSpecError(f"{name}={opts[name]!r} in {spec!r} is not three numbers separated by ';'") from e
-        if len(v) != 3:
-            raise ArtifactSpecError(f"{name} in {spec!r} needs three numbers separated by ';'")
-        return v
-
-    fit = opts.get("center", "").lower() == "fit"
-    if fit:
-        opts.pop("center")
-    allowed = {"sphere": {"radius", "center"}, "cylinder": {"radius", "center", "axis"}, "plane": {"point", "normal"}}
-    if kind not in allowed:
-        raise ArtifactSpecError(f"unknown artifact kind {kind!r} in {spec!r} (known: sphere, cylinder, plane)")
-    unknown = set(opts) - allowed[kind]
-    if unknown:
-        raise ArtifactSpecError(f"unknown option(s) {sorted(unknown)} for {kind} in {spec!r}")
-    if kind == "plane":
-        return Plane(vec("point", (0.0, 0.0, 0.0)), vec("normal", (0.0, 0.0, 1.0))), False
-    if "radius" not in opts:
-        raise ArtifactSpecError(f"{kind} in {spec!r} needs radius=<mm>")
-    try:
-        radius = float(opts["radius"])
-    except ValueError as e:
-        raise ArtifactSpecError(f"radius={opts['radius']!r} in {spec!r} is not a number") from e
-    if kind == "sphere":
-        return Sphere(radius, vec("center", (0.0, 0.0, 0.0))), fit
-    return Cylinder(radius, vec("center", (0.0, 0.0, 0.0)), vec("axis", (0.0, 1.0, 0.0))), fit

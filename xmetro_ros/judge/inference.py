@@ -6,7 +6,7 @@ A model set directory holds ``card.json`` and one or more ONNX files; each file 
   one cloud, partitioned into sets of ``card["set_size"]`` by a permutation seeded with
   ``card["partition_seed"]`` (see :func:`xmetro_ros.learn.pointnet.partition_sets` and ``card["global_feature"]``).
 How a cloud runs (``predict``, ``predict_with_sigma``, ``predict_with_uncertainty``, ``predict_batch``): the finite
-rows are gathered once, straight into set order (:func:`xmetro_ros.pointsets.set_order`, cached by point count),
+rows are gathered once, straight into set order (:func:`xmetro_ros.judge.pointsets.set_order`, cached by point count),
 ONNX Runtime is fed slices of that contiguous buffer (``set_chunk`` sets per run), both outputs of the spread head
 come from the same run, and the per-slot outputs are read back to point order in one pass (``set_kernels``): the
 same sets and bit for bit the same predictions as the gather/scatter implementation before it
@@ -39,8 +39,8 @@ from typing import Any
 
 import numpy as np
 
+from ..scan.resources import default_model_dir
 from .pointsets import set_order
-from .resources import default_model_dir
 from .set_kernels import expand_u as _expand_u
 from .set_kernels import finite_rows as _finite_rows
 from .set_kernels import from_sets as _from_sets

@@ -20,11 +20,11 @@ from typing import Any
 
 import numpy as np
 
-from .features import FeatureContext, compute_features
-from .preprocess import PreprocessConfig, prepare_scan
-from .scan import Scan
-from .scanner import ScannerModel
-from .targets import errors_with_fit
+from ..judge.features import FeatureContext, compute_features
+from ..preprocess import PreprocessConfig, prepare_scan
+from ..scan.scan import Scan
+from ..scan.scanner import ScannerModel
+from ..scan.targets import errors_with_fit
 
 __all__ = ["DatasetError", "StudySplit", "Table", "TablePart", "assemble_table", "build_table", "cloud_split",
            "sample_rows", "scan_part", "study_split"]
@@ -213,7 +213,7 @@ def build_table(scans: Sequence[Scan], feature_names: Sequence[str], preprocess_
     """Features, targets, oracle and cloud ids for the scans (see module doc). Each scan must carry its
     ``artifact``; ``fit_center`` fits its position first (nominal radius fixed). ``max_points_per_cloud`` None →
     every kept point. Scans may be a lazy iterable of Scan objects (each is prepared once, then dropped).
-    :mod:`xmetro_ros.dataset_dask` builds the same table with the scans spread over Dask workers."""
+    :mod:`xmetro_ros.calibrate.dataset_dask` builds the same table with the scans spread over Dask workers."""
     names = list(feature_names)
     if not names:
         raise DatasetError("no feature names")

@@ -1,7 +1,7 @@
 """Triangle-mesh artifacts: any part (STL / PLY / OBJ) as the nominal surface of the virtual scanner and of the
 targets. Lengths in mm, in the scan frame.
 
-``MeshArtifact`` has the interface of :class:`xmetro_ros.artifacts.Artifact`:
+``MeshArtifact`` has the interface of :class:`xmetro_ros.scan.artifacts.Artifact`:
 
 - ``intersect(origins, dirs)``: first hit along each ray (mm, NaN = miss). The bounding-volume hierarchy of
   open3d's ``RaycastingScene`` finds the triangle (float32); the depth is then recomputed on that triangle in
@@ -34,7 +34,6 @@ __all__ = [
     "SELF_HIT_MM",
     "MeshArtifact",
     "closest_on_triangles",
-    "mesh_from_dict",
     "read_mesh",
     "write_ply",
     "write_stl",
@@ -91,7 +90,8 @@ class MeshArtifact(Artifact):
         vertices: (V, 3) float64 mm.
         triangles: (F, 3) vertex indices, counter-clockwise seen from outside (outward normals).
         name: a label (part name or file stem).
-        source: how to rebuild it (``to_dict``): {"part": name, ...} for a generated part (xmetro_ros.parts) or
+        source: how to rebuild it (``to_dict``): {"part": name, ...} for a generated part
+        (xmetro_ros.scan.generated_parts) or
             {"path": file}; None → the vertices and triangles are written into the dict (small meshes only).
         crease_deg: faces around a vertex whose normals differ by more than this are not smoothed together.
         transform: (4, 4) rigid transform already applied to ``vertices`` (part frame → scan frame), recorded for
@@ -387,23 +387,3 @@ def read_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     if len(f) == 0:
         raise ArtifactSpecError(f"{path} holds no triangles")
     return v, f
-
-
-def mesh_from_dict(d: dict) -> MeshArtifact:
-    """Inverse of ``MeshArtifact.to_dict``."""
-    crease = float(d.get("crease_deg", 30.0))
-    t = np.asarray(d.get("transform", np.eye(4)), dtype=np.float64)
-    src = d.get("source")
-    if src is not None and "part" in src:
-        from .parts import make_part
-
-        base = make_part(**src)
-        base = MeshArtifact(base.vertices, base.triangles, name=base.name, source=base.source, crease_deg=crease)
-    elif src is not None and "path" in src:
-        base = MeshArtifact.from_file(src["path"], crease_deg=crease)
-    elif "vertices" in d and "triangles" in d:
-        base = MeshArtifact(np.asarray(d["vertices"]), np.asarray(d["triangles"]), name=str(d.get("name", "mesh")),
-                            crease_deg=crease)
-    else:
-        raise ArtifactSpecError("a mesh artifact needs a source (part or path) or vertices and triangles")
-    return base if np.allclose(t, np.eye(4)) else base.transformed(t)

@@ -18,12 +18,10 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from itertools import pairwise
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from .mesh import MeshArtifact
+from .mesh import MeshArtifact
 
 __all__ = ["PARTS", "form_field", "heightfield_solid", "make_part", "part_geometry"]
 
@@ -145,8 +143,6 @@ def part_geometry(name: str, step_mm: float = 0.3) -> tuple[np.ndarray, np.ndarr
 
 def make_part(part: str, form_um: float = 0.0, step_mm: float = 0.3) -> MeshArtifact:
     """The CAD (``form_um`` 0) or manufactured part ``part`` as a MeshArtifact (see the module docstring)."""
-    from .mesh import MeshArtifact
-
     v, f = part_geometry(part, step_mm)
     if form_um:
         v = v.copy()

@@ -1,5 +1,6 @@
 """Generalisation study on mesh parts never trained on: the virtual scanner scans a manufactured part (CAD + a
-known form error, ``xmetro_ros.parts``), the product judges the scan (``ScanHandler.process``, the node's path)
+known form error, ``xmetro_ros.scan.generated_parts``), the product judges the scan (``ScanHandler.process``, the
+node's path)
 and its deviation map against the CAD, and the simulator's truth says how good each figure is.
 
 Per part (presented rotated 5° about Z, shifted (0.37, 0.21) mm so no grid line falls on an edge, and raised
@@ -30,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from . import flags as fl
+from ..judge import flags as fl
 from .regions import REGIONS
 
 __all__ = ["DEFAULT_PARTS", "DEFAULT_SETTINGS", "PRESENTATION", "evaluate_part", "run_study"]
@@ -72,10 +73,10 @@ def evaluate_part(name: str, handler: Any, settings: Any, *, seed: int = 0, form
                   register: bool = True, keep_maps: bool = False, step_mm: float = 0.3) -> dict[str, Any]:
     """Simulate, judge and score one part at one setting (see the module docstring); returns a JSON-able dict
     (``maps`` with per-point arrays when ``keep_maps``)."""
+    from ..scan.generated_parts import make_part
+    from ..sim import simulate_scan
     from .cad_judge import cad_deviation, summary_um
-    from .parts import make_part
     from .registration import perturbed
-    from .sim import simulate_scan
 
     cad = make_part(name, step_mm=step_mm)
     man = make_part(name, form_um=form_um, step_mm=step_mm).transformed(PRESENTATION)
@@ -208,9 +209,9 @@ def run_study(out_dir: str | Path, *, model_dir: str | Path | None = None, parts
               plots: bool = True, log: Any = print) -> dict[str, Any]:
     """Run the study, write ``out_dir/<part>.json`` (one entry per settings), ``summary.json`` and (``plots``)
     ``<part>.png`` (deviation maps at the default settings). Returns the summary."""
-    from .inference import ModelSet
-    from .scan_handler import ScanHandler
-    from .scanner import ScannerModel, ScanSettings
+    from ..judge.inference import ModelSet
+    from ..judge.scan_handler import ScanHandler
+    from ..scan.scanner import ScannerModel, ScanSettings
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

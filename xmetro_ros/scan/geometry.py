@@ -25,8 +25,10 @@ __all__ = [
     "PointGeometry",
     "camera_vector",
     "matrix_to_quat",
+    "orientation_grid",
     "point_geometry",
     "quat_to_matrix",
+    "rotation_xyz",
     "unit",
     "vec3",
 ]
@@ -214,3 +216,19 @@ def point_geometry(points: np.ndarray, pose: HeadPose, camera_mm: float | Any,
             L[:, k] = r[k, 0] * lh[0] + r[k, 2] * lh[2]
             V[:, k] = r[k, 0] * vh[0] + r[k, 1] * vh[1] + r[k, 2] * vh[2]
     return PointGeometry(L=L, V=V, source_distance=dist, standoff=-z, u=x, s=y)
+
+
+def rotation_xyz(rx: float, ry: float, rz: float) -> np.ndarray:
+    """R = Rz(rz) · Ry(ry) · Rx(rx) (radians), a rotation in the head frame."""
+    cx, sx, cy, sy, cz, sz = np.cos(rx), np.sin(rx), np.cos(ry), np.sin(ry), np.cos(rz), np.sin(rz)
+    r_x = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    r_y = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    r_z = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return r_z @ r_y @ r_x
+
+
+def orientation_grid(max_tilt: float, tilt_steps: int, max_turn: float, turn_steps: int) -> list[np.ndarray]:
+    """Head-frame rotations of the search; ``max_* <= 0`` or 1 step → that axis is not searched."""
+    tilts = np.linspace(-max_tilt, max_tilt, tilt_steps) if max_tilt > 0 and tilt_steps > 1 else np.zeros(1)
+    turns = np.linspace(-max_turn, max_turn, turn_steps) if max_turn > 0 and turn_steps > 1 else np.zeros(1)
+    return [rotation_xyz(a, b, c) for c in turns for a in tilts for b in tilts]

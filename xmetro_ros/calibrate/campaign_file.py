@@ -55,8 +55,8 @@ from typing import Any
 
 import yaml
 
-from .artifacts import Sphere
-from .scanner import ScannerModel
+from ..scan.artifacts import Sphere
+from ..scan.scanner import ScannerModel
 
 __all__ = [
     "CAMPAIGN_FORMAT",
@@ -320,7 +320,7 @@ def _placement(d: Any, artifacts: dict[str, ArtifactSpec], where: str) -> Placem
 
 
 def _levels(d: Any, where: str) -> dict[str, tuple[float, ...]] | None:
-    from .scanner import SETTING_NAMES
+    from ..scan.scanner import SETTING_NAMES
 
     if d is None:
         return None

@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from .geometry import HeadPose, camera_vector, point_geometry
-from .scanner import ScannerModel, ScanSettings
+from ..scan.geometry import HeadPose, camera_vector, point_geometry
+from ..scan.scanner import ScannerModel, ScanSettings
 
 __all__ = [
     "REGISTRY",

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
-    from .mesh import MeshArtifact
+    from ..scan.mesh import MeshArtifact
     from .registration import Registration
 
 __all__ = ["CadDeviation", "cad_deviation", "summary_um"]
@@ -78,7 +78,7 @@ def cad_deviation(cad: MeshArtifact, points: np.ndarray, predicted: np.ndarray, 
     (N, 3) mm (NaN = no prediction: skipped) and ``U`` (N, 3) mm against ``cad`` (its own frame).
 
     ``pose`` (4, 4) part → scan (None = identity). ``register``: refine it by point-to-plane ICP on the
-    compensated points (:func:`xmetro_ros.registration.register_to_cad`; its fit and uncertainty are kept in
+    compensated points (:func:`xmetro_ros.parts.registration.register_to_cad`; its fit and uncertainty are kept in
     ``registration``) — the product registers what it reports.
     """
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
