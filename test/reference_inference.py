@@ -115,7 +115,9 @@ def predict_with_uncertainty(ms, X: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     """(errors, U, sigma, domain_distance) as ``ModelSet.predict_with_uncertainty`` computed them."""
     X = np.asarray(X, dtype=np.float32)
     err, sig = predict_with_sigma(ms, X)
-    mult = np.asarray(ms.card["uncertainty"]["multiplier"], np.float64)
+    # The one change to the verbatim reference: a card calibrated per condition (incidence x exposure) has a
+    # multiplier per row, looked up by the ModelSet (judge/conditions.py); the arithmetic below is the reference's.
+    mult = ms.multipliers(X)
     dist = domain_distance(ms, X)
     with np.errstate(invalid="ignore"):
         widen = np.where(dist > 1.0, dist, 1.0)

@@ -218,6 +218,6 @@ def test_batch_with_uncertainty_is_each_version_alone(default, features, n):
     d, U = default.predict_batch_with_uncertainty(Xq)
     for k in range(len(Xq)):
         r = default.predict_with_uncertainty(Xq[k])
-        assert np.array_equal(d[k], r.errors) and np.array_equal(U[k], r.U)
+        assert np.array_equal(d[k], r.errors) and np.array_equal(U[k], r.U, equal_nan=True)
     assert np.array_equal(d, default.predict_batch(Xq))
-    assert np.array_equal(U, default.predict_batch(Xq, output="uncertainty"))
+    assert np.array_equal(U, default.predict_batch(Xq, output="uncertainty"), equal_nan=True)

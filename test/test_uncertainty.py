@@ -42,8 +42,9 @@ def test_onnx_has_both_outputs_and_predict_is_unchanged(trained):
     rows = te.cloud_id == 0
     r = ms.predict_with_uncertainty(te.X[rows])
     np.testing.assert_array_equal(r.errors, ms.predict(te.X[rows]))  # same published predictions
-    assert np.all(r.U > 0) and np.all(np.isfinite(r.U)) and r.out_of_domain.dtype == bool
-    mult = np.asarray(trained["block"]["multiplier"])
+    mult = ms.multipliers(te.X[rows])  # per condition (incidence x exposure); NaN: too few calibration points
+    assert np.all(np.isfinite(r.U) == np.isfinite(mult)) and np.isfinite(mult).mean() > 0.9
+    assert np.all(r.U[np.isfinite(mult)] > 0) and r.out_of_domain.dtype == bool
     floor = trained["block"]["sigma_floor_mm"]
     inside = ~r.out_of_domain
     np.testing.assert_allclose(r.U[inside], mult * (r.sigma[inside] + floor))
@@ -77,8 +78,8 @@ def test_sigma_is_capped_far_outside_the_data(trained):
         r = ms.predict_with_uncertainty(X)
     smax = SIGMA_CAP_FACTOR * np.asarray(ms.card["uncertainty"]["sigma_max_mm"])
     assert r.out_of_domain.all() and np.all(r.sigma <= smax * (1 + 1e-5)) and np.any(r.sigma >= smax * (1 - 1e-5))
-    mult, floor = np.asarray(ms.card["uncertainty"]["multiplier"]), ms.card["uncertainty"]["sigma_floor_mm"]
-    assert np.all(np.isfinite(r.U))
+    mult, floor = ms.multipliers(X), ms.card["uncertainty"]["sigma_floor_mm"]
+    assert np.all(np.isfinite(r.U) == np.isfinite(mult))
     np.testing.assert_allclose(r.U, mult * (r.sigma + floor) * r.domain_distance[:, None], rtol=1e-6)
 
 
@@ -129,8 +130,10 @@ def test_multivariate_domain_flags_far_pose_not_training(trained):
             assert frac >= want_min  # a head tilted 40 deg about its X axis: training never saw it
             r = ms.predict_with_uncertainty(X)
             out = r.out_of_domain
-            base = np.asarray(ms.card["uncertainty"]["multiplier"]) * (r.sigma[out] + 0.001)
-            assert np.all(np.isfinite(r.U[out])) and np.all(r.U[out] > base)  # widened outside the domain
+            base = ms.multipliers(X)[out] * (r.sigma[out] + 0.001)
+            cal = np.isfinite(base)  # a point of a condition the calibration had too few points of has no U
+            assert cal.mean() > 0.9 and np.all(np.isnan(r.U[out][~cal]))
+            assert np.all(r.U[out][cal] > base[cal])  # widened outside the domain
             assert np.median(r.domain_distance[out]) > 1.0
 
 
@@ -162,20 +165,22 @@ def test_card_without_multivariate_domain_falls_back_to_min_max(trained, tmp_pat
     np.testing.assert_array_equal(ms.out_of_domain_mv(X), ms.out_of_domain(X))
     assert np.isnan(ms.domain_distance(X)).all()
     r = ms.predict_with_uncertainty(X)  # no widening without the domain
-    mult = np.asarray(card["uncertainty"]["multiplier"])
-    np.testing.assert_allclose(r.U, mult * (r.sigma + card["uncertainty"]["sigma_floor_mm"]))
+    np.testing.assert_allclose(r.U, ms.multipliers(X) * (r.sigma + card["uncertainty"]["sigma_floor_mm"]))
 
 
 def test_shipped_default_intervals_on_new_seeds_and_artifacts():
     """The packaged default (full profile, calibrated on campaign seed 1000) on a Ø40 sphere and an r 15 mm
-    cylinder simulated with seed 3: the same acceptance bounds (docs/learning.md table)."""
+    cylinder simulated with seed 3 (docs/learning.md table). Calibrated per condition (incidence × exposure) with
+    the envelope over neighbouring incidence bins, every bin covers ≥ 93 % (one multiplier per axis: 91.5 % in the
+    worst) and the overall coverage is conservative by up to 1.2 % (95.8-96.1 %, was 94.9-95.6 %): the price of
+    holding in every condition rather than on average."""
     from xmetro_ros.learn.uncertainty_eval import evaluate_shipped
 
     r = evaluate_shipped()
     u = r["calibration"]
-    assert "crepes" in u["method"] and len(u["calibration_clouds"]) == 108
+    assert "crepes" in u["method"] and len(u["calibration_clouds"]) == 108 and u["conditional"]
     for ax, m in r["metrics"].items():
-        assert 0.94 <= m["coverage"] <= 0.96, (ax, m["coverage"])
+        assert 0.94 <= m["coverage"] <= 0.965, (ax, m["coverage"])
         assert m["sharpness_ratio"] <= 1.3 and m["spearman_U_true_std"] >= 0.7, (ax, m)
         for name, rows in m["bins"].items():
-            assert all(b["coverage"] >= 0.90 for b in rows if b["n"] >= 200), (ax, name, rows)
+            assert all(b["coverage"] >= 0.93 for b in rows if b["n"] >= 200), (ax, name, rows)

@@ -106,7 +106,10 @@ def _uncertainty(model_dirs: dict[str, Path], train: Any, cal: Any, cov: Any, ca
     domain = fit_domain(train.X)
     for fam, d in model_dirs.items():
         update_card(d, domain_mv=domain)
-        block = conformal(d, cal.X, cal.y, cal.cloud_id, cloud_labels=cal_labels)
+        # Per condition, without the envelope over neighbouring incidence bins: a campaign's few thousand points
+        # per axis make each condition's multiplier noisy, and the maximum over noisy neighbours widened U by ~2 %
+        # (coverage 96.5-97.3 % on new recordings of the test's scanner instead of 94.5-95.7 %).
+        block = conformal(d, cal.X, cal.y, cal.cloud_id, cloud_labels=cal_labels, envelope=0)
         pr = predict_clouds(ModelSet.load(d), cov.X, cov.cloud_id)
         m = interval_metrics(pr["errors"], pr["U"], cov.y)  # recordings carry no simulator truth (oracle std)
         out[fam] = {"multiplier": block["multiplier"], "calibration_coverage": block["achieved_coverage_calibration"],

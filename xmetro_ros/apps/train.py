@@ -80,12 +80,15 @@ def run_train(args: argparse.Namespace) -> int:
 
 
 CALIBRATION_SEED_OFFSET = 1000  # calibration clouds: the profile's campaign simulated with seed + this
+# Points drawn per calibration cloud: enough for a multiplier per condition (incidence bin x exposure level), ~180
+# points per exposure level even beyond 80 deg incidence (0.25 % of a sphere scan's points).
+CALIBRATION_POINTS_PER_CLOUD = 2000
 
 
 def _calibrate_default(model_dir: Path, profile: str, seed: int) -> None:
     """Split-conformal calibration of the default model set on clouds it never saw: the profile's campaign
-    simulated again with seed + CALIBRATION_SEED_OFFSET (same artifacts and settings, new clouds), 300 points per
-    cloud (learn/uncertainty.py)."""
+    simulated again with seed + CALIBRATION_SEED_OFFSET (same artifacts and settings, new clouds),
+    CALIBRATION_POINTS_PER_CLOUD points per cloud, per axis and per condition (learn/uncertainty.py)."""
     from ..calibrate.dataset import build_table
     from ..judge.features import STUDY_FEATURES
     from ..judge.inference import update_card
@@ -98,7 +101,7 @@ def _calibrate_default(model_dir: Path, profile: str, seed: int) -> None:
     cal_seed = seed + CALIBRATION_SEED_OFFSET
     items = study_campaign(seed=cal_seed, **dict(prof.campaign))
     scans = [it.simulate() for it in items]
-    table = build_table(scans, list(STUDY_FEATURES), max_points_per_cloud=300, seed=cal_seed)
+    table = build_table(scans, list(STUDY_FEATURES), max_points_per_cloud=CALIBRATION_POINTS_PER_CLOUD, seed=cal_seed)
     labels = [f"campaign seed {cal_seed} item {i}: {c['label']} {c['artifact']['kind']}"
               for i, c in enumerate(table.clouds)]
     block = calibrate(model_dir, table.X, table.y, table.cloud_id, cloud_labels=labels)

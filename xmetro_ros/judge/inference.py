@@ -18,7 +18,8 @@ per mm). Predictions are the systematic error nominal − measured, mm, in the s
 Uncertainty (:meth:`ModelSet.predict_with_uncertainty`): a PointNet member with a second ONNX output
 ``log_sigma`` gives σ̂ per point and axis (mm); a member without one counts as σ̂ = 1 mm (plain absolute-residual
 conformal). The card's ``uncertainty`` block (written by :func:`xmetro_ros.learn.uncertainty.calibrate`) holds the
-split-conformal multiplier per axis: U (95 %) = multiplier × (σ̂ + σ floor). The card's ``domain_mv`` block is
+split-conformal multiplier per axis, and per calibration condition (incidence bin × exposure level,
+:mod:`.conditions`) where the card has them: U (95 %) = multiplier × (σ̂ + σ floor). The card's ``domain_mv`` block is
 the multivariate domain: the Mahalanobis distance of the standardized features from the training mean, with a
 threshold = a high quantile of the training points' distances; outside it U is widened by the factor
 distance / threshold (the
@@ -40,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from ..scan.resources import default_model_dir
+from .conditions import row_multipliers
 from .pointsets import set_order
 from .set_kernels import expand_u as _expand_u
 from .set_kernels import finite_rows as _finite_rows
@@ -431,11 +433,19 @@ class ModelSet:
         """True when the card carries a conformal calibration (``uncertainty`` block)."""
         return bool(self.card.get("uncertainty", {}).get("multiplier"))
 
+    def multipliers(self, X: np.ndarray) -> np.ndarray:
+        """The conformal multiplier of each feature row and axis: (3,) for a card calibrated per axis only, (M, 3)
+        for one calibrated per condition (incidence × exposure, :mod:`.conditions`; NaN: no U for that row)."""
+        block = self.card["uncertainty"]
+        if not block.get("conditional"):
+            return np.asarray(block["multiplier"], np.float64)
+        return row_multipliers(block, X, self.feature_names)
+
     def _expand(self, sig: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(U (M, 3), domain distance (M,)) from σ̂ (M, 3) and the feature rows X (M, F): the one formula of U."""
         if not self.calibrated:
             raise ModelLoadError(f"model set {self.id!r} has no uncertainty calibration (card 'uncertainty')")
-        mult = np.asarray(self.card["uncertainty"]["multiplier"], np.float64)
+        mult = self.multipliers(X)
         dist = self.domain_distance(X)
         floor = float(self.card["uncertainty"].get("sigma_floor_mm", 0.0))
         # (σ̂ + floor) × mult × max(1, distance), in that order (NaN distance: no widening), one compiled pass
@@ -456,8 +466,9 @@ class ModelSet:
     def predict_with_uncertainty(self, X: np.ndarray) -> UncertainPrediction:
         """Errors and their expanded uncertainty U (mm) for the feature rows X (M, F) of ONE cloud.
 
-        U = the card's conformal multiplier per axis × (σ̂ + its sigma_floor_mm), times max(1, domain distance)
-        outside the multivariate domain. Raises ModelLoadError when the model set has no calibration."""
+        U = the card's conformal multiplier (per axis, or per condition: :meth:`multipliers`) × (σ̂ + its
+        sigma_floor_mm), times max(1, domain distance) outside the multivariate domain. Raises ModelLoadError when
+        the model set has no calibration."""
         if not self.calibrated:
             raise ModelLoadError(f"model set {self.id!r} has no uncertainty calibration (card 'uncertainty')")
         X = self._check_X(X)

@@ -152,13 +152,27 @@ def _expand_u(sig: np.ndarray, floor: float, mult: np.ndarray, dist: np.ndarray,
             out[i, j] = (sig[i, j] + floor) * mult[j] * w
 
 
+@njit(**_JIT)
+def _expand_u_rows(sig: np.ndarray, floor: float, mult: np.ndarray, dist: np.ndarray, out: np.ndarray) -> None:
+    for i in range(sig.shape[0]):
+        d = np.float64(dist[i])
+        w = d if d > 1.0 else 1.0
+        for j in range(sig.shape[1]):
+            out[i, j] = (sig[i, j] + floor) * mult[i, j] * w
+
+
 def expand_u(sig: np.ndarray, floor: float, mult: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    """U (M, A) float64 = (σ̂ + floor) × multiplier[axis] × max(1, distance), in that order of float64 operations
-    (the numpy expression's: same bits), one pass instead of four (M, A) array operations."""
-    if sig.shape[0] != dist.shape[0] or sig.shape[1] != mult.shape[0]:
+    """U (M, A) float64 = (σ̂ + floor) × multiplier × max(1, distance), in that order of float64 operations
+    (the numpy expression's: same bits), one pass instead of four (M, A) array operations. ``mult``: (A,) one
+    multiplier per axis, or (M, A) one per row and axis (the row's calibration condition, judge/conditions.py)."""
+    mult = np.asarray(mult, np.float64)
+    if sig.shape[0] != dist.shape[0] or sig.shape[1] != mult.shape[-1] or (mult.ndim == 2 and mult.shape != sig.shape):
         raise ValueError(f"expand_u: sigma {sig.shape}, multiplier {mult.shape}, distance {dist.shape}")
     out = np.empty(sig.shape)
-    _expand_u(sig, float(floor), np.asarray(mult, np.float64), dist, out)
+    if mult.ndim == 2:
+        _expand_u_rows(sig, float(floor), np.ascontiguousarray(mult), dist, out)
+    else:
+        _expand_u(sig, float(floor), mult, dist, out)
     return out
 
 
@@ -179,3 +193,4 @@ def warm_up() -> None:
     from_sets(g, order, wide[:, 2:], rows)
     for d in (np.zeros(2, np.float32), np.zeros(2)):
         expand_u(out[:, :2], 0.0, np.ones(2), d)
+        expand_u(out[:, :2], 0.0, np.ones((2, 2)), d)

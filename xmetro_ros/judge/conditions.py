@@ -1,0 +1,72 @@
+"""The conditions U is calibrated in: incidence-angle bins × exposure levels (Mondrian conformal categories).
+
+One multiplier per axis for a whole scan under-covers where the error's spread grows faster than the model's σ̂
+says: beyond the grazing angle (80-90°: 85-88 % on held-out scans) and at mid incidence at the shortest exposure.
+The calibration (:func:`xmetro_ros.learn.uncertainty.calibrate`) therefore computes the conformal multiplier per
+*condition* — the incidence angle acos(Inc) in 10° bins crossed with the exposure levels of the calibration
+clouds — and the card's ``uncertainty.conditional`` block holds them; a point's U uses its condition's multiplier.
+A condition the calibration saw too few points of has no multiplier: those points get no U (NaN, flag
+NO_UNCERTAINTY) rather than a guess. Cards without the block keep one multiplier per axis.
+
+Units: degrees (incidence, from the ``Inc`` feature = cos of the angle between the normal and the laser direction),
+milliseconds (exposure, the ``exposure_time`` feature).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+__all__ = ["INCIDENCE_EDGES_DEG", "MIN_POINTS", "condition_index", "exposure_edges", "row_multipliers"]
+
+INCIDENCE_EDGES_DEG = tuple(float(a) for a in range(0, 91, 10))
+#: fewest calibration points of a condition (per axis) for its own multiplier: the fewest for which the finite-sample
+#: conformal quantile at 95 % exists (⌈(n + 1)·0.95⌉ ≤ n). Few points make a noisy multiplier; the calibration's
+#: envelope over neighbouring incidence bins (learn/uncertainty.py) keeps such a cell at least as wide as theirs.
+MIN_POINTS = 19
+FEATURES = ("Inc", "exposure_time")
+
+
+def exposure_edges(levels: Sequence[float]) -> list[float]:
+    """Bin edges (ms) between the distinct exposure levels of the calibration (geometric midpoints), open at both
+    ends: an exposure between two levels joins the nearer one (in ratio)."""
+    lv = np.unique(np.asarray(levels, np.float64))
+    lv = lv[np.isfinite(lv) & (lv > 0)]
+    mids = np.sqrt(lv[1:] * lv[:-1]) if len(lv) > 1 else np.zeros(0)
+    return [0.0, *mids.tolist(), float("inf")]
+
+
+def condition_index(X: np.ndarray, feature_names: Sequence[str], incidence_edges: Sequence[float],
+                    exp_edges: Sequence[float]) -> np.ndarray:
+    """(M,) int64 condition of each feature row: incidence bin × len(exposure bins) + exposure bin; −1 where the
+    row's Inc or exposure is not finite. Raises KeyError when the features lack Inc or exposure_time."""
+    names = list(feature_names)
+    X = np.asarray(X)
+    cos_i = np.asarray(X[:, names.index("Inc")], np.float64)
+    exp = np.asarray(X[:, names.index("exposure_time")], np.float64)
+    inc = np.degrees(np.arccos(np.clip(cos_i, -1.0, 1.0)))
+    ie = np.asarray(incidence_edges, np.float64)
+    ee = np.asarray(exp_edges, np.float64)
+    bi = np.clip(np.searchsorted(ie, inc, side="right") - 1, 0, len(ie) - 2)
+    be = np.clip(np.searchsorted(ee, exp, side="right") - 1, 0, len(ee) - 2)
+    idx = bi * (len(ee) - 1) + be
+    return np.where(np.isfinite(cos_i) & np.isfinite(exp), idx, -1).astype(np.int64)
+
+
+def row_multipliers(block: dict[str, Any], X: np.ndarray, feature_names: Sequence[str]) -> np.ndarray:
+    """(M, 3) float64 multiplier of each row: its condition's (``block["conditional"]``), NaN for a condition the
+    calibration had too few points of or a row without a condition; the per-axis multipliers for every row when
+    the block has no conditional part."""
+    glob = np.asarray(block["multiplier"], np.float64)
+    cond = block.get("conditional")
+    if not cond:
+        return np.broadcast_to(glob, (len(X), len(glob)))
+    table = np.array([[np.nan if m is None else float(m) for m in cell] for cell in cond["multiplier"]],
+                     np.float64)
+    idx = condition_index(X, feature_names, cond["incidence_edges_deg"], cond["exposure_edges_ms"])
+    out = np.full((len(X), table.shape[1]), np.nan)
+    ok = idx >= 0
+    out[ok] = table[idx[ok]]
+    return out
