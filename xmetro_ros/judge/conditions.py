@@ -19,7 +19,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["INCIDENCE_EDGES_DEG", "MIN_POINTS", "condition_index", "exposure_edges", "row_multipliers"]
+__all__ = ["INCIDENCE_EDGES_DEG", "MIN_POINTS", "condition_index", "exposure_edges", "interior_edges",
+           "multiplier_table", "row_multipliers"]
 
 INCIDENCE_EDGES_DEG = tuple(float(a) for a in range(0, 91, 10))
 #: fewest calibration points of a condition (per axis) for its own multiplier: the fewest for which the finite-sample
@@ -38,21 +39,34 @@ def exposure_edges(levels: Sequence[float]) -> list[float]:
     return [0.0, *mids.tolist(), float("inf")]
 
 
+def interior_edges(incidence_edges: Sequence[float], exp_edges: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+    """(cos of the interior incidence edges, interior exposure edges): a row's incidence bin is the number of
+    interior edges its angle reaches (cos Inc ≤ cos edge), its exposure bin the number of interior exposure edges
+    it reaches (exposure ≥ edge) — the one rule of :func:`condition_index` and the compiled U kernel."""
+    ie = np.asarray(incidence_edges, np.float64)
+    ee = np.asarray(exp_edges, np.float64)
+    return np.cos(np.radians(ie[1:-1])), ee[1:-1].copy()
+
+
 def condition_index(X: np.ndarray, feature_names: Sequence[str], incidence_edges: Sequence[float],
                     exp_edges: Sequence[float]) -> np.ndarray:
     """(M,) int64 condition of each feature row: incidence bin × len(exposure bins) + exposure bin; −1 where the
-    row's Inc or exposure is not finite. Raises KeyError when the features lack Inc or exposure_time."""
+    row's Inc or exposure is not finite. Raises ValueError when the features lack Inc or exposure_time."""
     names = list(feature_names)
     X = np.asarray(X)
     cos_i = np.asarray(X[:, names.index("Inc")], np.float64)
     exp = np.asarray(X[:, names.index("exposure_time")], np.float64)
-    inc = np.degrees(np.arccos(np.clip(cos_i, -1.0, 1.0)))
-    ie = np.asarray(incidence_edges, np.float64)
-    ee = np.asarray(exp_edges, np.float64)
-    bi = np.clip(np.searchsorted(ie, inc, side="right") - 1, 0, len(ie) - 2)
-    be = np.clip(np.searchsorted(ee, exp, side="right") - 1, 0, len(ee) - 2)
-    idx = bi * (len(ee) - 1) + be
+    cos_e, exp_e = interior_edges(incidence_edges, exp_edges)
+    bi = (cos_i[:, None] <= cos_e[None, :]).sum(axis=1)
+    be = (exp[:, None] >= exp_e[None, :]).sum(axis=1)
+    idx = bi * (len(exp_e) + 1) + be
     return np.where(np.isfinite(cos_i) & np.isfinite(exp), idx, -1).astype(np.int64)
+
+
+def multiplier_table(block: dict[str, Any]) -> np.ndarray:
+    """(cells, 3) float64 of the block's conditional multipliers, NaN where a condition has none."""
+    return np.array([[np.nan if m is None else float(m) for m in cell] for cell in block["conditional"]["multiplier"]],
+                    np.float64)
 
 
 def row_multipliers(block: dict[str, Any], X: np.ndarray, feature_names: Sequence[str]) -> np.ndarray:
@@ -63,8 +77,7 @@ def row_multipliers(block: dict[str, Any], X: np.ndarray, feature_names: Sequenc
     cond = block.get("conditional")
     if not cond:
         return np.broadcast_to(glob, (len(X), len(glob)))
-    table = np.array([[np.nan if m is None else float(m) for m in cell] for cell in cond["multiplier"]],
-                     np.float64)
+    table = multiplier_table(block)
     idx = condition_index(X, feature_names, cond["incidence_edges_deg"], cond["exposure_edges_ms"])
     out = np.full((len(X), table.shape[1]), np.nan)
     ok = idx >= 0

@@ -41,9 +41,10 @@ from typing import Any
 import numpy as np
 
 from ..scan.resources import default_model_dir
-from .conditions import row_multipliers
+from .conditions import interior_edges, multiplier_table, row_multipliers
 from .pointsets import set_order
 from .set_kernels import expand_u as _expand_u
+from .set_kernels import expand_u_conditional as _expand_u_cond
 from .set_kernels import finite_rows as _finite_rows
 from .set_kernels import from_sets as _from_sets
 from .set_kernels import to_sets as _to_sets
@@ -433,6 +434,18 @@ class ModelSet:
         """True when the card carries a conformal calibration (``uncertainty`` block)."""
         return bool(self.card.get("uncertainty", {}).get("multiplier"))
 
+    @cached_property
+    def _conditions(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int] | None:
+        """(multiplier table, cos of the interior incidence edges, interior exposure edges, column of Inc, column of
+        exposure_time) of a card calibrated per condition; None otherwise."""
+        cond = (self.card.get("uncertainty") or {}).get("conditional")
+        if not cond:
+            return None
+        cos_e, exp_e = interior_edges(cond["incidence_edges_deg"], cond["exposure_edges_ms"])
+        names = list(self.feature_names)
+        return (multiplier_table(self.card["uncertainty"]), cos_e, exp_e, names.index("Inc"),
+                names.index("exposure_time"))
+
     def multipliers(self, X: np.ndarray) -> np.ndarray:
         """The conformal multiplier of each feature row and axis: (3,) for a card calibrated per axis only, (M, 3)
         for one calibrated per condition (incidence × exposure, :mod:`.conditions`; NaN: no U for that row)."""
@@ -445,9 +458,14 @@ class ModelSet:
         """(U (M, 3), domain distance (M,)) from σ̂ (M, 3) and the feature rows X (M, F): the one formula of U."""
         if not self.calibrated:
             raise ModelLoadError(f"model set {self.id!r} has no uncertainty calibration (card 'uncertainty')")
-        mult = self.multipliers(X)
         dist = self.domain_distance(X)
         floor = float(self.card["uncertainty"].get("sigma_floor_mm", 0.0))
+        if self._conditions is not None:  # the row's condition found and its multiplier applied in one pass
+            table, cos_e, exp_e, i_inc, i_exp = self._conditions
+            Xa = np.asarray(X)
+            return _expand_u_cond(np.asarray(sig, np.float64), floor, table, cos_e, exp_e, Xa[:, i_inc], Xa[:, i_exp],
+                                  dist), dist
+        mult = self.multipliers(X)
         # (σ̂ + floor) × mult × max(1, distance), in that order (NaN distance: no widening), one compiled pass
         return _expand_u(np.asarray(sig, np.float64), floor, mult, dist), dist
 

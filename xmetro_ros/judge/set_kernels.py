@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-__all__ = ["expand_u", "finite_rows", "from_sets", "to_sets", "warm_up"]
+__all__ = ["expand_u", "expand_u_conditional", "finite_rows", "from_sets", "to_sets", "warm_up"]
 
 _JIT: dict[str, Any] = {"cache": True, "nogil": True}
 
@@ -161,6 +161,48 @@ def _expand_u_rows(sig: np.ndarray, floor: float, mult: np.ndarray, dist: np.nda
             out[i, j] = (sig[i, j] + floor) * mult[i, j] * w
 
 
+@njit(**_JIT)
+def _expand_u_cond(sig: np.ndarray, floor: float, table: np.ndarray, cos_edges: np.ndarray, exp_edges: np.ndarray,
+                   cos_i: np.ndarray, expo: np.ndarray, dist: np.ndarray, out: np.ndarray) -> None:
+    n_exp = exp_edges.shape[0] + 1
+    for i in range(sig.shape[0]):
+        d = np.float64(dist[i])
+        w = d if d > 1.0 else 1.0
+        c = np.float64(cos_i[i])
+        e = np.float64(expo[i])
+        if not (np.isfinite(c) and np.isfinite(e)):
+            for j in range(sig.shape[1]):
+                out[i, j] = np.nan
+            continue
+        bi = 0
+        for k in range(cos_edges.shape[0]):
+            if c <= cos_edges[k]:
+                bi += 1
+        be = 0
+        for k in range(exp_edges.shape[0]):
+            if e >= exp_edges[k]:
+                be += 1
+        cell = bi * n_exp + be
+        for j in range(sig.shape[1]):
+            out[i, j] = (sig[i, j] + floor) * table[cell, j] * w
+
+
+def expand_u_conditional(sig: np.ndarray, floor: float, table: np.ndarray, cos_edges: np.ndarray,
+                         exp_edges: np.ndarray, cos_i: np.ndarray, expo: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """U (M, A) as :func:`expand_u` with each row's multiplier looked up in ``table`` (cells, A) by its condition
+    (judge/conditions.py: incidence bin from ``cos_i`` against ``cos_edges``, exposure bin from ``expo`` against
+    ``exp_edges``), in the same pass: the same bits as expand_u with conditions.row_multipliers' (M, A) array."""
+    if not (sig.shape[0] == dist.shape[0] == cos_i.shape[0] == expo.shape[0]) or table.shape[1] != sig.shape[1]:
+        raise ValueError(f"expand_u_conditional: sigma {sig.shape}, table {table.shape}, distance {dist.shape}")
+    if table.shape[0] != (len(cos_edges) + 1) * (len(exp_edges) + 1):
+        raise ValueError(f"expand_u_conditional: {table.shape[0]} cells for {len(cos_edges) + 1} incidence and "
+                         f"{len(exp_edges) + 1} exposure bins")
+    out = np.empty(sig.shape)
+    _expand_u_cond(sig, float(floor), np.ascontiguousarray(table, np.float64), np.asarray(cos_edges, np.float64),
+                   np.asarray(exp_edges, np.float64), cos_i, expo, dist, out)
+    return out
+
+
 def expand_u(sig: np.ndarray, floor: float, mult: np.ndarray, dist: np.ndarray) -> np.ndarray:
     """U (M, A) float64 = (σ̂ + floor) × multiplier × max(1, distance), in that order of float64 operations
     (the numpy expression's: same bits), one pass instead of four (M, A) array operations. ``mult``: (A,) one
@@ -194,3 +236,5 @@ def warm_up() -> None:
     for d in (np.zeros(2, np.float32), np.zeros(2)):
         expand_u(out[:, :2], 0.0, np.ones(2), d)
         expand_u(out[:, :2], 0.0, np.ones((2, 2)), d)
+        for c in (np.zeros(2, np.float32), np.zeros(2)):
+            expand_u_conditional(out[:, :2], 0.0, np.ones((4, 2)), np.zeros(1), np.zeros(1), c, c, d)
