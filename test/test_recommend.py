@@ -9,7 +9,13 @@ import pytest
 
 from xmetro_ros.judge.inference import ModelSet
 from xmetro_ros.judge.scan_handler import HandlerParams, ScanHandler
-from xmetro_ros.plan.recommend import RecommendCancelled, RecommendProgress, coverage_mask, recommend
+from xmetro_ros.plan.recommend import (
+    PREDICTION_REL_UNC,
+    RecommendCancelled,
+    RecommendProgress,
+    coverage_mask,
+    recommend,
+)
 from xmetro_ros.scan.artifacts import Sphere
 from xmetro_ros.scan.geometry import matrix_to_quat, orientation_grid, rotation_xyz
 from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
@@ -131,6 +137,7 @@ def test_rank_by_predicted_distribution(judged):
                                                                       for c in b.ranked}
     assert b.top is b.ranked[0]
     gain = b.before.predicted_p95_mm - b.top.predicted_p95_mm
-    assert b.kept_current == (not gain > np.hypot(b.before.score_unc_mm, b.top.score_unc_mm))
+    unc = np.sqrt(b.before.score_unc_mm**2 + b.top.score_unc_mm**2 + (PREDICTION_REL_UNC * b.top.predicted_p95_mm)**2)
+    assert b.kept_current == (not gain > unc)
     with pytest.raises(ValueError, match="rank_by"):
         recommend(model, res.context, rows, res.features, scan.pose, scanner, scan.settings, rank_by="mean", **kw)

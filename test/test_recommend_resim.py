@@ -11,7 +11,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from xmetro_ros.judge.features import FeatureContext, compute_features
-from xmetro_ros.plan.recommend import coverage_mask, p95_interval_halfwidth, recommend
+from xmetro_ros.plan.recommend import coverage_mask, gain_and_uncertainty, p95_interval_halfwidth, recommend
 from xmetro_ros.plan.resim import GroundTruth, Region, _window, resim_seeds, resimulate, resimulate_many, verify
 from xmetro_ros.scan.artifacts import Cylinder, Sphere
 from xmetro_ros.scan.geometry import orientation_grid, point_geometry
@@ -277,8 +277,8 @@ def test_keep_current_and_domain(scanner):
     feats = compute_features(list(m.feature_names), ctx)
     rec = recommend(m, ctx, rows, feats, judged.pose, scanner, judged.settings, **kw)
     assert not rec.kept_current and rec.best is rec.top and rec.best.settings.exposure_ms == 2.0
-    gain = rec.before.score_mm - rec.best.score_mm
-    assert gain > np.hypot(rec.before.score_unc_mm, rec.best.score_unc_mm)
+    gain, unc = gain_and_uncertainty(rec.before, rec.best)
+    assert gain == pytest.approx(rec.before.predicted_p95_mm - rec.best.predicted_p95_mm) and gain > unc
     # U wildly varying from point to point: the p95 is too uncertain to trust a small gain → keep the current set-up
     rng = np.random.default_rng(0)
     noisy = Flat(lambda X: np.repeat(np.abs(rng.standard_cauchy((len(X), 1))) * 0.05, 3, axis=1))

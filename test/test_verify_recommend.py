@@ -105,3 +105,21 @@ def test_shipped_model_recommendations_hold_when_followed():
     print("after / best:", np.round(ratios, 3), "rank correlation:", [round(r["rank_correlation"], 2) for r in R])
     assert ratios.max() <= 1.25 and np.median(ratios) <= 1.1, ratios
     assert np.median([r["rank_correlation"] for r in R]) >= 0.7
+
+
+def test_calibrate_the_recommender_on_validation_regions(tmp_path):
+    """``--calibrate`` (here on one validation region, tilts only): the factor on U per exposure is the median
+    re-simulated random-part p95 over the predicted p95 |U|, relative to 0.5 ms; the relative uncertainty is the
+    sign-flipped 5 % quantile of the gain errors of the 20 best-ranked candidates."""
+    out = tmp_path / "c.json"
+    assert cli.main(["verify-recommend", "--calibrate", "--quick", "--regions", "1", "--out", str(out)]) == 0
+    rep = json.loads(out.read_text())
+    med, table = rep["random_over_u_p95_median"], rep["exposure_u_scale"]
+    assert rep["region_set"] == "validation" and set(table) == {"0.1", "0.5", "2.0"} and table["0.5"] == 1.0
+    for e, v in table.items():
+        assert v == pytest.approx(med[e] / med["0.5"], abs=0.006) and rep["n_per_exposure"][e] > 0
+    # the simulator's random part is of the order of U: a ratio far from 1 would be a broken U
+    assert all(0.3 < v < 3.0 for v in med.values())
+    g = rep["gain_error_rel"]
+    assert g["n"] == 20 and g["quantile"] == 0.05 and 0.0 < g["sd"] < 1.0
+    assert g["mean"] - 3 * g["sd"] <= -rep["prediction_rel_unc"] <= g["mean"]  # a low quantile of the same errors

@@ -9,6 +9,10 @@ actual best candidate, the ratio after / best, the recommendation's percentile i
 correlation of predicted and actual p95 over the candidates; medians over the regions. The actual best is
 measured on the same evaluation draws as before and after (``resim.verify``: finalists chosen on separate selection
 draws, so that the best is not the luckiest of hundreds of draws).
+
+``--calibrate`` instead writes the recommender's calibration from the validation regions (:func:`calibrate`: the
+factor on U per exposure and the relative uncertainty of a predicted p95, ``recommend.EXPOSURE_U_SCALE`` and
+``PREDICTION_REL_UNC``).
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from ..plan.recommend import PREDICTION_REL_UNC
 from ..scan.artifacts import Artifact, Cylinder, Sphere
 from ..scan.geometry import matrix_to_quat
 from ..scan.scanner import ScanSettings
@@ -66,9 +71,92 @@ def region_centre(art: Artifact, direction: tuple[float, float, float]) -> np.nd
     return np.array([art.radius * d[0], 4.0, art.radius * d[2]])
 
 
+def _models(model_dir: Path | None, pose_model_dir: Path | str | None) -> tuple[Any, Any, Any, Any]:
+    """(scanner, primary model, pose model or None, the node's ScanHandler with routing)."""
+    from ..judge.inference import ModelSet, load_pose_model
+    from ..judge.scan_handler import HandlerParams, ScanHandler
+    from ..scan.resources import pose_model_path
+    from ..scan.scanner import ScannerModel
+
+    scanner = ScannerModel.load()
+    model = ModelSet.load(str(model_dir) if model_dir else None)
+    pose_path = pose_model_path(model_dir, pose_model_dir)
+    pose = None if pose_path is None else load_pose_model(pose_path, model)
+    return scanner, model, pose, ScanHandler(model, scanner, HandlerParams(), pose_model=pose)
+
+
+def _judged_region(handler: Any, scanner: Any, art: Artifact, st: tuple[float, float, float],
+                   direction: tuple[float, float, float], seed: int, radius_mm: float) -> tuple[Any, Any, Any,
+                                                                                              np.ndarray]:
+    """Scan ``art`` at ``st`` (seed), judge it as the node does; (scan, handler result, region centre, rows)."""
+    from ..sim import simulate_scan
+
+    scan = simulate_scan(art, ScanSettings(*st), scanner=scanner, seed=seed)
+    res = handler.process(scan)
+    c = region_centre(art, direction)
+    pts = np.asarray(res.prepared.points, dtype=np.float64)
+    return scan, res, c, np.flatnonzero(np.linalg.norm(art.project(pts) - c, axis=1) <= radius_mm)
+
+
+def calibrate(model_dir: Path | None = None, pose_model_dir: Path | str | None = None, radius_mm: float = 4.0,
+              top: int = 20, quantile: float = 0.05, n_regions: int = len(VALIDATION_REGIONS),
+              **recommend_kw: Any) -> dict[str, Any]:
+    """The recommender's calibration (``recommend.EXPOSURE_U_SCALE``, ``PREDICTION_REL_UNC``) from the nine
+    *validation* regions (seeds 8000 + i), the node's models (as :func:`verify_regions`).
+
+    1. Every candidate of each region's search (U unscaled) is re-simulated once: per exposure, the median of its
+       actual random-part p95 over its predicted p95 of |U|, divided by that at 0.5 ms → the factor on U.
+    2. The search again with those factors; for the ``top`` best-ranked candidates of each region, the error of the
+       predicted gain over the current set-up, e = (actual before − actual candidate) − (predicted before −
+       predicted candidate) (before on 3 seeds, the candidate on its one), over sqrt(p_before² + p_candidate²)
+       (predicted): the ``quantile`` of that (an over-predicted gain is negative), sign flipped → the relative
+       uncertainty of one predicted p95.
+
+    ``n_regions``: the first N validation regions; ``recommend_kw``: passed to the searches (e.g. a smaller grid)."""
+    from ..plan.recommend import recommend
+    from ..plan.resim import GroundTruth, Region, resim_seeds, resimulate, resimulate_many
+
+    scanner, _, pose, handler = _models(model_dir, pose_model_dir)
+    search = pose if pose is not None else handler.model
+    regions, seed0 = REGION_SETS["validation"]
+    ratio: dict[float, list[float]] = {}
+    runs: list[tuple[tuple[Any, ...], dict[Any, float], float]] = []
+    for i, (art, st, direction) in enumerate(regions[:n_regions]):
+        scan, res, c, rows = _judged_region(handler, scanner, art, st, direction, seed0 + i, radius_mm)
+        truth, region = GroundTruth.from_scan(scan, scanner), Region(centre=c, radius_mm=radius_mm)
+        args = (res.context, rows, res.features, scan.pose, scanner, scan.settings)
+        rec = recommend(search, *args, **{**recommend_kw, "keep_current": False, "exposure_u_scale": None})
+        seeds = resim_seeds(truth, 4)
+        act = resimulate_many(truth, region, [(k.settings, k.pose) for k in rec.ranked], seeds=seeds[3:])
+        for k, a in zip(rec.ranked, act, strict=True):
+            if k.u_p95_mm > 0 and np.isfinite(a.rand_p95_mm):
+                ratio.setdefault(k.settings.exposure_ms, []).append(a.rand_p95_mm / k.u_p95_mm)
+        before = resimulate(truth, region, scan.settings, scan.pose, seeds=seeds[:3])
+        runs.append((args, {(k.settings, k.rotation.tobytes()): a.p95_mm
+                            for k, a in zip(rec.ranked, act, strict=True)},
+                     before.p95_mm))
+    med = {e: float(np.median(v)) for e, v in sorted(ratio.items())}
+    ref = med.get(0.5, 1.0)
+    table = {e: round(v / ref, 2) for e, v in med.items()}
+    err: list[float] = []
+    for args, actual, before_p95 in runs:
+        rec = recommend(search, *args, **{**recommend_kw, "keep_current": False, "exposure_u_scale": table})
+        for k in rec.ranked[:top]:
+            act_k = actual[(k.settings, k.rotation.tobytes())]
+            if np.isfinite(act_k):
+                pb, pk = rec.before.reported_p95_mm, k.reported_p95_mm
+                err.append(((before_p95 - act_k) - (pb - pk)) / np.hypot(pb, pk))
+    return {"model": search.id, "region_set": "validation", "exposure_u_scale": table,
+            "random_over_u_p95_median": med, "n_per_exposure": {e: len(v) for e, v in sorted(ratio.items())},
+            "prediction_rel_unc": round(-float(np.quantile(err, quantile)), 3),
+            "gain_error_rel": {"quantile": quantile, "n": len(err), "mean": float(np.mean(err)),
+                               "sd": float(np.std(err))}}
+
+
 def verify_regions(model_dir: Path | None = None, radius_mm: float = 4.0, n_regions: int = len(REGIONS),
                    candidate_seeds: int = 1, n_seeds: int = 3, finalists: int = 5, against_all: bool = False,
-                   region_set: str = "test", pose_model_dir: Path | str | None = None,
+                   region_set: str | list[tuple[Artifact, tuple[float, float, float], tuple[float, float, float]]]
+                   = "test", pose_model_dir: Path | str | None = None, seed: int = 9000,
                    **recommend_kw: Any) -> dict[str, Any]:
     """Run the check over the first ``n_regions`` regions; returns the JSON-serialisable report.
 
@@ -79,31 +167,19 @@ def verify_regions(model_dir: Path | None = None, radius_mm: float = 4.0, n_regi
     ``against_all``: the actual best is sought among ALL candidates of the search, those the model's domain check
     discards included (a second search with ``max_out_of_domain`` 1 lists them); the recommendation is still the
     search's own, with the domain check. It measures what the domain check costs a model not trained there.
-    ``region_set``: ``"test"`` (``REGIONS``, seeds 7000 + i) or ``"validation"`` (``VALIDATION_REGIONS``, 8000 + i)."""
-    regions, seed0 = REGION_SETS[region_set]
-    from ..judge.inference import ModelSet, load_pose_model
-    from ..judge.scan_handler import HandlerParams, ScanHandler
-    from ..plan.recommend import recommend
+    ``region_set``: ``"test"`` (``REGIONS``, seeds 7000 + i), ``"validation"`` (``VALIDATION_REGIONS``, 8000 + i),
+    or a list of regions of one's own (seeds ``seed`` + i)."""
+    regions, seed0 = (REGION_SETS[region_set] if isinstance(region_set, str) else (region_set, seed))
+    from ..plan.recommend import gain_and_uncertainty, recommend
     from ..plan.resim import GroundTruth, Region, verify
-    from ..scan.resources import pose_model_path
-    from ..scan.scanner import ScannerModel
-    from ..sim import simulate_scan
 
-    scanner = ScannerModel.load()
-    model = ModelSet.load(str(model_dir) if model_dir else None)
-    pose_path = pose_model_path(model_dir, pose_model_dir)
-    pose = None if pose_path is None else load_pose_model(pose_path, model)
+    scanner, model, pose, handler = _models(model_dir, pose_model_dir)
     search = pose if pose is not None else model
-    handler = ScanHandler(model, scanner, HandlerParams(), pose_model=pose)
     out: list[dict[str, Any]] = []
     um = 1e3
     for i, (art, st, direction) in enumerate(regions[:n_regions]):
         t0 = time.monotonic()
-        scan = simulate_scan(art, ScanSettings(*st), scanner=scanner, seed=seed0 + i)
-        res = handler.process(scan)
-        c = region_centre(art, direction)
-        pts = np.asarray(res.prepared.points, dtype=np.float64)
-        rows = np.flatnonzero(np.linalg.norm(art.project(pts) - c, axis=1) <= radius_mm)
+        scan, res, c, rows = _judged_region(handler, scanner, art, st, direction, seed0 + i, radius_mm)
         rec = recommend(search, res.context, rows, res.features, scan.pose, scanner, scan.settings, **recommend_kw)
         checked: Any = rec
         if against_all:
@@ -117,6 +193,8 @@ def verify_regions(model_dir: Path | None = None, radius_mm: float = 4.0, n_regi
         def s(x: ScanSettings) -> list[float]:
             return [x.lateral_density, x.direction_density, x.exposure_ms]
 
+        gain, gain_unc = gain_and_uncertainty(rec.before, rec.top if rec.top is not None else rec.best,
+                                              recommend_kw.get("prediction_rel_unc", PREDICTION_REL_UNC))
         out.append({
             "artifact": art.to_dict(), "judged_settings": list(st), "centre_mm": c.round(3).tolist(),
             "radius_mm": radius_mm, "seed": seed0 + i, "note": rec.note, "kept_current": rec.kept_current,
@@ -124,8 +202,10 @@ def verify_regions(model_dir: Path | None = None, radius_mm: float = 4.0, n_regi
             "recommended_quaternion_xyzw": rec.best.quaternion.round(6).tolist(),
             "predicted_p95_um": {k: None if v is None else v * um for k, v in
                                  (("before", ver.before.predicted_p95_mm), ("after", ver.after.predicted_p95_mm))},
+            "predicted_gain_um": {"gain": gain * um, "uncertainty": gain_unc * um},
             "actual_p95_um": {"before": ver.before.p95_mm * um, "after": ver.after.p95_mm * um,
-                              "best": ver.best.p95_mm * um, "after_spread": ver.after.p95_spread_mm * um},
+                              "best": ver.best.p95_mm * um, "after_spread": ver.after.p95_spread_mm * um,
+                              "before_spread": ver.before.p95_spread_mm * um},
             "actual_after_parts_um": {"systematic_p95": ver.after.sys_p95_mm * um,
                                       "random_p95": ver.after.rand_p95_mm * um},
             "best_settings": s(ver.best.settings),
@@ -144,7 +224,8 @@ def verify_regions(model_dir: Path | None = None, radius_mm: float = 4.0, n_regi
         return float(np.median([r[k] for r in out]))
 
     return {"model": search.id, "judge_models": sorted({model.id, *([pose.id] if pose is not None else [])}),
-            "region_set": region_set, "rank_by": recommend_kw.get("rank_by", "score"),
+            "region_set": region_set if isinstance(region_set, str) else "own",
+            "rank_by": recommend_kw.get("rank_by", "score"),
             "candidates_checked": "all (domain check off)" if against_all else "the search's", "regions": out,
             "median": {"after_over_best": med("after_over_best"), "after_percentile": med("after_percentile"),
                        "rank_correlation": med("rank_correlation")}}
@@ -165,6 +246,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--quick", action="store_true", help="3 x 3 tilts only, no turns (a quick check)")
     p.add_argument("--validation", action="store_true",
                    help="the nine validation regions (seeds 8000 + i) instead of the test regions")
+    p.add_argument("--calibrate", action="store_true",
+                   help="instead of the check: the recommender's calibration (factor on U per exposure, relative "
+                        "uncertainty of a predicted gain) from the validation regions (recommend.EXPOSURE_U_SCALE, "
+                        "PREDICTION_REL_UNC)")
     p.add_argument("--against-all", action="store_true",
                    help="seek the actual best among all candidates, those outside the model's domain included")
     p.add_argument("--rank-by", choices=("score", "predicted"), default="score",
@@ -179,9 +264,14 @@ def run(args: argparse.Namespace) -> int:
     from ..judge.inference import ModelLoadError
 
     try:
-        rep = verify_regions(args.model, args.radius, max(1, min(args.regions, len(REGIONS))),
-                             against_all=args.against_all, region_set="validation" if args.validation else "test",
-                             pose_model_dir=args.pose_model, **kw)
+        if args.calibrate:
+            rep = calibrate(args.model, args.pose_model, args.radius,
+                            n_regions=max(1, min(args.regions, len(VALIDATION_REGIONS))), **kw)
+        else:
+            rep = verify_regions(args.model, args.radius, max(1, min(args.regions, len(REGIONS))),
+                                 against_all=args.against_all,
+                                 region_set="validation" if args.validation else "test",
+                                 pose_model_dir=args.pose_model, **kw)
     except ModelLoadError as e:  # a missing or unusable model set (e.g. a pose model for other features)
         print(f"xmetro verify-recommend: {e}", file=sys.stderr)
         return 2

@@ -1,0 +1,136 @@
+"""Issue 29 (part 1): "keep the current set-up" is a candidate like any other; the random part at each candidate's
+exposure enters the ranking with its calibrated size; no followed recommendation makes a region worse."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from xmetro_ros.judge.features import FeatureContext, compute_features
+from xmetro_ros.plan.recommend import EXPOSURE_U_SCALE, gain_and_uncertainty, recommend, u_scale
+from xmetro_ros.scan.artifacts import Cylinder, Sphere
+from xmetro_ros.scan.geometry import point_geometry
+from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
+from xmetro_ros.sim import simulate_scan
+
+
+def test_u_scale_interpolates_in_log_exposure():
+    t = {0.1: 2.0, 0.5: 1.0, 2.0: 1.5}
+    assert u_scale(0.5, t) == 1.0 and u_scale(0.1, t) == 2.0 and u_scale(2.0, t) == 1.5
+    assert u_scale(1.0, t) == pytest.approx(1.25)  # log(1) halfway between log(0.5) and log(2)
+    assert u_scale(0.05, t) == 2.0 and u_scale(5.0, t) == 1.5  # clipped at the ends
+    assert u_scale(3.0, None) == 1.0 and u_scale(3.0, {}) == 1.0
+    assert EXPOSURE_U_SCALE[0.5] == 1.0
+
+
+class Tilted:
+    """A small systematic error growing with tilt (1 − Inc) and a U given per call."""
+
+    feature_names = ("exposure_time", "Inc")
+
+    def __init__(self, u):
+        self.u = u
+
+    def predict(self, X):
+        X = np.asarray(X, np.float64)
+        return np.stack([np.zeros(len(X)), np.zeros(len(X)), 0.001 + 0.01 * (1 - X[:, 1])], axis=1)
+
+    def predict_batch(self, Xq):
+        return np.stack([self.predict(x) for x in Xq])
+
+    def predict_with_uncertainty(self, X):
+        return self.predict(X), self.u(np.asarray(X))
+
+
+def _context(scan, scanner) -> FeatureContext:
+    """Feature context of a simulated scan's points with the true normals (no preprocessing)."""
+    pts = scan.points.reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    g = point_geometry(pts, scan.pose, scanner.baseline_mm)
+    return FeatureContext(normals=scan.artifact.normals(scan.artifact.project(pts)), L=g.L, V=g.V,
+                          standoff=g.standoff, source_distance=g.source_distance, settings=scan.settings, points=pts,
+                          u=g.u, s=g.s, camera_mm=scanner.camera_mm)
+
+
+def test_random_part_scaled_per_exposure_and_keep_rule():
+    """The factor on U at each exposure multiplies the candidates' p95 |U| (and so enters score and predicted p95);
+    a predicted gain inside the uncertainty of the predictions keeps the current set-up, with the reason in the
+    note; without the model's relative error the same gain is taken."""
+    scanner = ScannerModel.load()
+    judged = simulate_scan(Sphere(22.5), ScanSettings(6.0, 3.0, 0.5), scanner=scanner, seed=6)
+    ctx = _context(judged, scanner)
+    c0 = np.array([9.0, 0.0, np.sqrt(22.5**2 - 81)])  # a sloped patch: tilting towards it lowers the error
+    rows = np.flatnonzero(np.linalg.norm(np.asarray(ctx.points) - c0, axis=1) < 4)
+    m = Tilted(lambda X: np.full((len(X), 3), 0.004))  # U the same at every exposure
+    feats = compute_features(list(m.feature_names), ctx)
+    kw = dict(max_points=300, tilt_steps=3, turn_steps=1, in_domain=False)
+    args = (m, ctx, rows, feats, judged.pose, scanner, judged.settings)
+    raw = recommend(*args, **kw, exposure_u_scale=None, keep_current=False)
+    scaled = recommend(*args, **kw, exposure_u_scale={0.5: 1.0, 2.0: 3.0}, keep_current=False)
+    by = {(c.settings, c.rotation.tobytes()): c for c in raw.ranked}
+    for c in scaled.ranked:
+        r = by[(c.settings, c.rotation.tobytes())]
+        f = u_scale(c.settings.exposure_ms, {0.5: 1.0, 2.0: 3.0})
+        assert c.u_p95_mm == pytest.approx(f * r.u_p95_mm, rel=1e-5)
+        assert c.p95_mm == pytest.approx(r.p95_mm, rel=1e-9)  # the systematic part is not touched
+    # the 2 ms candidates, the same as 0.5 ms ones without the factor, fall behind with it
+    assert scaled.top.settings.exposure_ms < 2.0
+    assert "calibrated size" in scaled.note and "calibrated size" not in raw.note
+    # keep rule: the model's relative error decides between "change" and "keep"
+    change = recommend(*args, **kw, prediction_rel_unc=0.0)
+    gain, unc0 = gain_and_uncertainty(change.before, change.top, 0.0)
+    assert gain > unc0 and not change.kept_current and change.best is change.top
+    rel = 1.5 * gain / np.hypot(change.before.reported_p95_mm, change.top.reported_p95_mm)
+    keep = recommend(*args, **kw, prediction_rel_unc=rel)
+    assert keep.kept_current and "keep the current set-up" in keep.note
+    assert keep.best.settings == judged.settings and np.allclose(keep.best.rotation, np.eye(3))
+    assert keep.top.settings == change.top.settings  # the best-ranked candidate is still reported
+    g, u = gain_and_uncertainty(keep.before, keep.top, rel)
+    assert g == pytest.approx(gain) and u > g and f"{u * 1e3:.1f} um" in keep.note
+
+
+# Held-out regions of one's own (seeds 9000 + i, never used for training, validation or the test regions): set-ups
+# near their best (0.5 ms, regions near the top, the issue's case: a random region of the 45 mm sphere judged at
+# 10/4/0.5, and its top) and set-ups far from it (0.1 ms, 2 ms, sloped regions).
+OWN_REGIONS = [
+    (Sphere(22.5), (10.0, 4.0, 0.5), (0.526, 0.457, 0.717)),
+    (Sphere(22.5), (10.0, 4.0, 0.5), (-0.066, 0.209, 0.976)),
+    (Sphere(17.5), (6.0, 5.0, 0.5), (0.126, 0.568, 0.813)),
+    (Sphere(22.5), (15.0, 5.0, 0.5), (0.002, -0.196, 0.981)),
+    (Cylinder(20.0), (6.0, 5.0, 0.5), (0.223, 0.007, 0.975)),
+    (Sphere(22.5), (10.0, 4.0, 0.5), (0.0, 0.0, 1.0)),
+    (Sphere(17.5), (15.0, 5.0, 0.1), (-0.121, -0.214, 0.969)),
+    (Sphere(27.5), (6.0, 3.0, 2.0), (-0.555, -0.358, 0.751)),
+    (Cylinder(20.0), (10.0, 3.0, 0.1), (-0.513, -0.477, 0.714)),
+]
+
+
+def test_no_followed_recommendation_makes_a_region_worse():
+    """Issue 29's acceptance on the shipped model sets as the node runs them (``plan.resim.verify`` exactly as
+    ``xmetro verify-recommend``: the primary or the pose model judges by routing, the pose model searches), over
+    the held-out regions above: no region worse than staying beyond the re-simulation noise (3 × the spread of the
+    difference: hypot of the before and after p95 spreads over the 3 evaluation seeds; the convention of
+    test_verify_recommend's acceptance), median after / best ≤ 1.1; the issue's case (region 1: a 45 mm sphere at
+    10/4/0.5, a predicted gain inside its uncertainty) keeps the current set-up."""
+    from xmetro_ros.apps.verify_recommend import verify_regions
+
+    rep = verify_regions(None, region_set=OWN_REGIONS, seed=9000)
+    R = rep["regions"]
+    assert len(R) == len(OWN_REGIONS) and rep["region_set"] == "own"
+    for k, r in enumerate(R):
+        a, p, g = r["actual_p95_um"], r["predicted_p95_um"], r["predicted_gain_um"]
+        print(f"region {k} {r['judged_settings']}: {'kept' if r['kept_current'] else 'changed'} "
+              f"-> {r['recommended_settings']}; predicted {p['before']:.2f} -> {p['after']:.2f} um "
+              f"(gain {g['gain']:.2f} ± {g['uncertainty']:.2f}); actual {a['before']:.2f} ± {a['before_spread']:.2f}"
+              f" -> {a['after']:.2f} ± {a['after_spread']:.2f} um, best {a['best']:.2f}, "
+              f"after/best {r['after_over_best']:.3f}")
+    for r in R:
+        a = r["actual_p95_um"]
+        assert a["after"] - a["before"] <= 3 * max(np.hypot(a["before_spread"], a["after_spread"]), 0.1), r
+        if r["kept_current"]:
+            assert a["after"] == a["before"] and "keep the current set-up" in r["note"]
+        else:
+            assert r["predicted_gain_um"]["gain"] > r["predicted_gain_um"]["uncertainty"]
+    ratios = np.array([r["after_over_best"] for r in R])
+    assert np.median(ratios) <= 1.1, ratios
+    assert R[1]["kept_current"]
