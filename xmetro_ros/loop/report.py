@@ -84,14 +84,20 @@ def write_report(result: LoopResult, out_dir: str | Path) -> Path:
     lines += ["", "## Predictive findings (a live node can use them)", ""]
     pr = rep.get("predictive", {})
     if pr.get("added"):
-        lines += ["| iteration | added feature | trace score | spectral (peak, coherence) | trace gain | eval MAE "
-                  "normal µm after |", "|---|---|---|---|---|---|"]
+        lines += ["| iteration | added | correction | held-out gain (µm², ± s.e.; size µm) | spectral (peak, "
+                  "coherence) | eval MAE normal µm after |", "|---|---|---|---|---|---|"]
         for st in pr["steps"]:
             sp = st.get("spectral") or {}
             spec = (f"{sp['score']:.3f} ({sp['peak_frequency']:.4g} /unit, {sp['phase_coherence']:.2f})"
                     if sp else "–")
-            lines.append(f"| {st['iteration']} | {st['variable']} | {st['score']:.3f} | {spec} | "
-                         f"{st['trace_gain'] * 100:.1f} % | {st['after']['normal']['mae'] * 1e3:.2f} |")
+            g = st.get("trace_gain_um") or {}
+            gain = (f"{g['mse_um2']:.2f} ± {g['se_um2'] if g.get('se_um2') is not None else float('nan'):.2f}; "
+                    f"{g['size_um']:.2f}" if g else "–")
+            per = st.get("periodic")
+            corr = (f"periodic {per['frequency']:.3g} {per['frequency_unit']}, {per['amplitude_um']:.2f} µm"
+                    if per else "feature")
+            lines.append(f"| {st['iteration']} | {st['variable']} | {corr} | {gain} | {spec} | "
+                         f"{st['after']['normal']['mae'] * 1e3:.2f} |")
     else:
         lines.append("No predictive effect found (nothing a feature of a new scan can correct).")
     lines += ["", "Live before / after (eval part, no ground truth used):", "", "| | MAE normal µm | R² normal | "

@@ -21,9 +21,10 @@ from .correct import cross_fit_offsets, fit_offsets
 from .data import LoopData, LoopInputError
 from .diagnose import FIXES, LOCKED_COHERENCE, fix_for, offset_table, oscillation_finding
 from .model import AxisModel, GivenModel, fit_family, fit_normal_corrector
-from .trace import TraceConfig, cv_folds, holm, spectral_test, trace_candidates
+from .periodic import PERIODIC_NAMES, fit_periodic, frequency_grid, periodic_gain, transfer_compare
+from .trace import TraceConfig, cv_folds, heldout_gain, holm, spectral_test, trace_candidates
 
-__all__ = ["LoopConfig", "LoopResult", "error_summary", "metrics", "run_loop", "split_roles"]
+__all__ = ["LoopConfig", "LoopResult", "error_summary", "metrics", "run_loop", "split_roles", "trace_gain_um"]
 
 ROLE_TRAIN, ROLE_TRACE, ROLE_EVAL = 0, 1, 2
 REPORT_SCHEMA = "xmetro.loop.report/2"
@@ -43,8 +44,11 @@ class LoopConfig:
         fractions: share of groups for train / trace / eval (train ignored with a given model).
         block_size: points per block for the identity hold-out and the offset cross-fit.
         offset_ridge: ridge (relative) of the per-identity offset fit.
-        min_gain: a traced effect is added only if it lowers the squared error of the trace part by this fraction
-            (the trace part is held out from model fitting; offsets are cross-fitted); else the next one is tried.
+        confirm_z: a traced effect is added only if, refitted, it lowers the mean squared residual along the normal
+            of the trace groups (held out from model fitting; offsets cross-fitted) by at least
+            ``trace.min_size_um``² and by ``confirm_z`` standard errors over those groups (``trace.heldout_gain``;
+            or by ``min_gain`` of its squared error with that size); else the next one is tried.
+        min_gain: see ``confirm_z``.
         max_tries: at most this many significant candidates of each kind (continuous, identity) are tried per
             iteration (so failing continuous candidates cannot use up the tries of the identity ones).
         min_phase_coherence: a candidate significant by the spectral test only is tried as a feature when the
@@ -61,6 +65,7 @@ class LoopConfig:
     fractions: tuple[float, float, float] = (0.4, 0.3, 0.3)
     block_size: int = 24
     offset_ridge: float = 1e-3
+    confirm_z: float = 1.0
     min_gain: float = 0.02
     max_tries: int = 4
     min_phase_coherence: float = LOCKED_COHERENCE
@@ -144,23 +149,38 @@ def error_summary(errors: np.ndarray, normals: np.ndarray) -> dict:
     return d
 
 
+def trace_gain_um(res_before: np.ndarray, res_after: np.ndarray, normals: np.ndarray, groups: np.ndarray,
+                  cfg: LoopConfig) -> dict:
+    """Gain in µm of a refitted correction on the trace groups (``trace.heldout_gain`` on the residual along the
+    normal, per group), with ``cfg.confirm_z`` as the uncertainty factor."""
+    rb = np.einsum("ij,ij->i", res_before, normals)
+    ra = np.einsum("ij,ij->i", res_after, normals)
+    _, g = np.unique(groups, return_inverse=True)
+    g = g.reshape(-1)
+    tc = TraceConfig(**{**cfg.trace.__dict__, "gain_z": cfg.confirm_z})
+    return heldout_gain(np.bincount(g, rb**2), np.bincount(g, ra**2), np.bincount(g, np.abs(rb)),
+                        np.bincount(g, np.abs(ra)), np.bincount(g).astype(float), tc)
+
+
 def _spectral_only(s) -> bool:
     return bool(s.spectral and s.spectral.get("significant") and "learner" not in s.significant_by)
 
 
 def _ordered(scores, info: dict[str, CandidateInfo], correction: str, max_tries: int,
              min_coherence: float = 0.5) -> list:
-    """Effects to try, in order: significant *continuous* candidates by score (held out by whole clouds/profiles, so
-    they generalise to unseen ones), then significant *identity* candidates by score. Identity candidates are scored
-    inside their own groups, which lets them mimic any smooth within-group effect (drift, distortion) — so they come
-    last, as the loop's last resort (per-profile / per-pass offsets). A candidate significant by the spectral test
-    alone is tried as a feature only when its oscillation is phase-locked to it (coherence ≥ ``min_coherence``):
-    a feature cannot predict an oscillation whose phase changes from cloud to cloud (it is diagnostic)."""
+    """Effects to try, in order: significant *continuous* candidates by held-out gain in µm² (held out by whole
+    clouds/profiles, so they generalise to unseen ones), then significant *identity* candidates by score. Identity
+    candidates are scored inside their own groups, which lets them mimic any smooth within-group effect (drift,
+    distortion) — so they come last, as the loop's last resort (per-profile / per-pass offsets). A candidate
+    significant by the spectral test alone is tried as a feature only when its oscillation is phase-locked to it
+    (coherence ≥ ``min_coherence``): a feature cannot predict an oscillation whose phase changes from cloud to
+    cloud (it is diagnostic)."""
     ok = [s for s in scores if s.significant and not s.in_model and not info[s.name].confounded
           and not (_spectral_only(s) and s.spectral["phase_coherence"] < min_coherence)]
     cont = [s for s in ok if info[s.name].kind != "identity" and correction != "offset"]
     ident = [s for s in ok if info[s.name].kind == "identity" and correction != "feature"]
-    return (sorted(cont, key=lambda s: -s.rank_score)[:max_tries]
+    # Continuous candidates by their held-out gain in µm² (on unseen groups), identities by their score.
+    return (sorted(cont, key=lambda s: -(s.gain["mse_um2"] if s.gain else s.rank_score))[:max_tries]
             + sorted(ident, key=lambda s: -s.score)[:max_tries])
 
 
@@ -199,22 +219,31 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
     offset_pred = np.zeros_like(model_pred)
     added: list[str] = []
     offset_summaries: dict[str, dict] = {}
+    per_pred = np.zeros_like(model_pred)  # phase-locked periodic corrections of scan time (along the normal)
+    periodic_fits: dict[str, dict] = {}
+    # Rows whose residual is out of sample for the model: the trace part, and the train part too with a given model
+    # (fitted elsewhere); the periodic transfer test holds out whole groups among them.
+    T = (A | B) if given is not None else B
 
     def refit(Xm: np.ndarray, names: list[str], o_pred: np.ndarray) -> tuple[Any, np.ndarray]:
         """The model of the features ``names`` (or the given model's corrector) fitted to what the offsets
         ``o_pred`` leave: trained on the per-identity offsets too, it would learn them from whatever feature tells
         the training clouds apart, and no feature carries them to unseen profiles or passes."""
         if given is None:
-            m = fit_model(Xm, names, E - o_pred)
-            return m, m.predict(Xm)
+            m = fit_model(Xm, names, E - o_pred - per_pred)
+            return m, m.predict(Xm) + per_pred
         # The given model covers its own features; the corrector learns what they leave along the normal as a
         # function of the added variables only. On the full feature set, per axis, it fits the few training
         # clouds' geometry and misses e.g. a many-period oscillation over t (docs/closed-loop.md).
         new_cols = Xm[:, n_given:]
-        rn_target = np.einsum("ij,ij->i", E - base_pred - o_pred, Nrm)
-        corr = fit_normal_corrector(cfg.family, new_cols[A], rn_target[A], names[n_given:], seed=cfg.seed,
-                                    iterations=cfg.iterations, threads=cfg.threads)
-        return model, base_pred + corr.predict(new_cols, Nrm)
+        cols = [i for i, nm in enumerate(names[n_given:]) if nm not in periodic_fits]
+        if not cols:
+            return model, base_pred + per_pred
+        rn_target = np.einsum("ij,ij->i", E - base_pred - per_pred - o_pred, Nrm)
+        corr = fit_normal_corrector(cfg.family, new_cols[A][:, cols], rn_target[A],
+                                    [names[n_given + i] for i in cols], seed=cfg.seed, iterations=cfg.iterations,
+                                    threads=cfg.threads)
+        return model, base_pred + per_pred + corr.predict(new_cols[:, cols], Nrm)
 
     def offsets_for(mpred: np.ndarray, names: list[str]) -> tuple[np.ndarray, dict[str, dict]]:
         """Cross-fitted per-identity offsets (applied in order) on top of ``mpred``, and their eval summaries."""
@@ -244,11 +273,14 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
                   getattr(given.model_set, "id", "given"), "features": list(feat_names)},
         "ground_truth": {"all": error_summary(E, Nrm), "eval": error_summary(E[C], Nrm[C])},
         "config": {"family": cfg.family, "iterations": cfg.iterations,
-                   "max_iter": cfg.max_iter, "min_gain": cfg.min_gain,
+                   "max_iter": cfg.max_iter, "confirm_z": cfg.confirm_z,
+                   "min_gain": cfg.min_gain,
                    "max_tries": cfg.max_tries, "correction": cfg.correction, "seed": cfg.seed,
                    "block_size": cfg.block_size, "trace": {k: getattr(cfg.trace, k) for k in
                                                            ("n_folds", "n_bins", "bin_levels", "shrink", "n_perm",
-                                                            "alpha", "min_effect", "block_size", "max_points",
+                                                            "alpha", "min_effect", "min_size_um", "gain_z",
+                                                            "gain_levels",
+                                                            "block_size", "max_points",
                                                             "spectral", "spectral_min_periods",
                                                             "spectral_max_periods", "spectral_n_freq",
                                                             "spectral_detrend")}},
@@ -286,7 +318,47 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
             if (_spectral_only(s_) and not s_.in_model and not cand_info[s_.name].confounded
                     and s_.spectral is not None and s_.spectral["phase_coherence"] < cfg.min_phase_coherence):
                 it_osc[s_.name] = oscillation_finding(s_.to_dict(), s_.name, cand_info[s_.name].unit, None)
-        for cand in _ordered(scores, cand_info, cfg.correction, cfg.max_tries, cfg.min_phase_coherence):
+        transfer = (_transfer_tests(rn, T, names, cand_info, cand_vals, data, cfg,
+                                     "train+trace" if given is not None else "trace")
+                    if cfg.correction != "offset" else {})
+        rec["transfer"] = transfer
+        ordered = _ordered(scores, cand_info, cfg.correction, cfg.max_tries, cfg.min_phase_coherence)
+        n_cont = sum(cand_info[c_.name].kind != "identity" for c_ in ordered)
+        # Continuous candidates as features first, then a phase-locked periodic correction of scan time when it
+        # transfers to held-out clouds (None below), then identities (diagnostic offsets) as the last resort.
+        for cand in [*ordered[:n_cont], None, *ordered[n_cont:]]:
+            if cand is None:
+                done = False
+                for name_, tr_ in transfer.items():
+                    if tr_["transfers"] != "periodic" or name_ in added:
+                        continue
+                    fit = fit_periodic(rn[T], cand_vals[name_][T], data.group[T],
+                                       frequency_grid(cand_vals[name_][T], data.group[T]))
+                    if fit is None:
+                        continue
+                    sc_ = next(s_ for s_ in scores if s_.name == name_)
+                    corr_ = fit.predict(cand_vals[name_])[:, None] * Nrm
+                    per_pred = per_pred + corr_
+                    model_pred = model_pred + corr_
+                    periodic_fits[name_] = fit.to_dict(cand_info[name_].unit or "s")
+                    X = np.hstack([X, cand_vals[name_][:, None].astype(np.float32)])
+                    feat_names = [*feat_names, name_]
+                    added.append(name_)
+                    sel = sc_
+                    g_ = tr_["periodic"]
+                    pred_steps.append({"iteration": it, "variable": name_, "correction": "periodic",
+                                       "trace_gain_um": g_, "heldout_gain": g_, "score": sc_.score,
+                                       "p_holm": sc_.p_holm, "significant_by": ["transfer"],
+                                       "periodic": periodic_fits[name_], "spectral": sc_.spectral,
+                                       "after": metrics(E[C], model_pred[C], Nrm[C])})
+                    rec["selected"] = {**sc_.to_dict(), "correction": "periodic", "variable": name_,
+                                       "feature": name_, "finding": "predictive", "significant_by": ["transfer"],
+                                       "periodic": periodic_fits[name_], "trace_gain_um": g_, "trace_gain": None}
+                    done = True
+                    break
+                if done:
+                    break
+                continue
             kind = cand_info[cand.name].kind
             if kind == "identity":
                 t_offsets = [*offsets, cand.name]
@@ -312,8 +384,12 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
             # Check on the trace part (held out from model fitting; offsets cross-fitted): a traced variable that
             # does not lower the error there is not added (e.g. a within-profile shape no model can generalise).
             gain = 1.0 - float(((E[B] - t_pred[B]) ** 2).sum()) / mse_b
-            if gain < cfg.min_gain:
-                rec["rejected"].append({"name": cand.name, "trace_gain": gain})
+            gain_um = trace_gain_um(E[B] - pred[B], E[B] - t_pred[B], Nrm[B], data.group[B], cfg)
+            # Kept when its gain in µm on the trace groups exceeds the size floor and confirm_z s.e. — or, a large
+            # effect seen on few groups (s.e. poorly known), when it also lowers the trace part's squared error by
+            # ≥ min_gain with the same size.
+            if not (gain_um["passes"] or (gain >= cfg.min_gain and gain_um["size_um"] >= cfg.trace.min_size_um)):
+                rec["rejected"].append({"name": cand.name, "trace_gain": gain, "trace_gain_um": gain_um})
                 sp = cand.spectral or {}
                 if kind != "identity" and sp.get("significant"):
                     # Significant oscillation the variable cannot predict: diagnostic (confirmed at the end).
@@ -326,17 +402,18 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
             if kind == "identity":
                 action = {"correction": "offset", "variable": cand.name, "offsets": t_summ[cand.name],
                           "finding": "diagnostic"}
-                diag_gain[cand.name] = {"iteration": it, "trace_gain": gain, "score": cand.score,
-                                        "p_holm": cand.p_holm}
+                diag_gain[cand.name] = {"iteration": it, "trace_gain": gain, "trace_gain_um": gain_um,
+                                        "score": cand.score, "p_holm": cand.p_holm}
             else:
                 added.append(cand.name)
                 action = {"correction": "feature", "variable": cand.name, "feature": cand.name,
                           "finding": "predictive"}
                 pred_steps.append({"iteration": it, "variable": cand.name, "trace_gain": gain,
-                                   "score": cand.score, "p_holm": cand.p_holm,
+                                   "trace_gain_um": gain_um, "heldout_gain": cand.gain, "score": cand.score,
+                                   "p_holm": cand.p_holm,
                                    "significant_by": list(cand.significant_by), "spectral": cand.spectral,
                                    "after": metrics(E[C], t_model_pred[C], Nrm[C])})
-            rec["selected"] = {**cand.to_dict(), **action, "trace_gain": gain}
+            rec["selected"] = {**cand.to_dict(), **action, "trace_gain": gain, "trace_gain_um": gain_um}
             break
         if sel is None or cand_info[sel.name].kind == "identity":
             # Only where no feature was added: an oscillation seen before a feature took it is not a finding.
@@ -376,8 +453,44 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
     report["iterations"] = iterations
     report["final_features"] = feat_names
     fit_rows = A
-    return LoopResult(report, model if (given is None and added) else None, feat_names, added, offsets, plots, X,
-                      fit_rows)
+    report["predictive"]["periodic"] = periodic_fits
+    # A periodic correction is not part of the retrained family: the exported model is the family retrained on the
+    # augmented features (as with a given model).
+    return LoopResult(report, model if (given is None and added and not periodic_fits) else None, feat_names, added,
+                      offsets, plots, X, fit_rows)
+
+
+def _transfer_tests(
+    rn: np.ndarray, T: np.ndarray, names: list[str], info: dict[str, CandidateInfo], vals: dict[str, np.ndarray],
+    data: LoopData, cfg: LoopConfig, rows: str,
+) -> dict[str, dict]:
+    """For each candidate of scan time (``PERIODIC_NAMES``): a phase-locked sinusoid of it against per-profile
+    offsets, by their gain in µm on clouds they were not fitted on (``periodic.transfer_compare``; rows ``T``,
+    subsampled to ``trace.max_points``, folds of whole groups)."""
+    out: dict[str, dict] = {}
+    todo = [n for n in names if n in PERIODIC_NAMES and not info[n].in_model and not info[n].confounded]
+    if not todo:
+        return out
+    idx = np.flatnonzero(T)
+    if len(np.unique(data.group[idx])) < 3:
+        return out
+    tc = cfg.trace
+    rng = np.random.default_rng([cfg.seed, 11])
+    if len(idx) > tc.max_points:
+        idx = np.sort(rng.choice(idx, tc.max_points, replace=False))
+    folds = cv_folds(data.group[idx], data.order[idx], tc.n_folds, by="group", block_size=tc.block_size,
+                     seed=tc.seed)
+    for name in todo:
+        t = vals[name][idx]
+        if "line" in data.fields and data.hold_by == "cloud":
+            res = transfer_compare(rn[idx], t, data.fields["line"][idx], data.group[idx], folds, tc)
+        else:
+            per = periodic_gain(rn[idx], t, data.group[idx], folds, tc)
+            res = {"periodic": per, "profile_offsets_by_index": None, "profile_offsets_within_recording": None,
+                   "transfers": "periodic" if per and per["passes"] else "neither"}
+        if res["periodic"] is not None:
+            out[name] = {**res, "rows": rows}
+    return out
 
 
 def _diagnostics(

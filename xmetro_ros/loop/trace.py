@@ -21,11 +21,14 @@ Method (per candidate variable ``x``, residual ``R`` (N, 3) mm = actual − pred
   observed score, p is extrapolated from a normal fit to the null scores (capped at 1 / (1 + n_perm)), so that few
   permutations suffice; Holm's step-down correction over every test made (all candidates' learner tests and the
   spectral tests) controls the family-wise error rate.
-- A candidate is *significant* when its Holm-adjusted p ≤ ``alpha`` **and** its score ≥ ``min_effect`` (a
-  practical-size floor: a tiny but "significant" share of a huge cloud is not an effect worth a feature).
+- A candidate is *significant* when its Holm-adjusted p ≤ ``alpha`` **and** it is big enough: a continuous
+  candidate by its held-out gain in µm on the groups it was not fitted on (``heldout_gain``: the drop of the
+  mean squared residual along the normal, per held-out group, ≥ ``min_size_um``² and ≥ ``gain_z`` standard errors
+  over the groups; the best resolution of ``gain_levels``, against the training groups' mean); an identity
+  candidate (diagnostic, scored inside its own groups) by its share of the residual (score ≥ ``min_effect``).
   The point-wise null cannot see cloud-level coincidences (with few clouds, a candidate whose range differs between
   clouds can "explain" per-cloud offsets); the loop therefore also checks that an added effect lowers the error of
-  the trace part after refitting (``run.LoopConfig.min_gain``).
+  the trace part after refitting (``run.LoopConfig.confirm_z``).
 
 Everything is vectorised over points and permutations (``np.bincount``), no per-point Python loops.
 """
@@ -37,8 +40,10 @@ from typing import Any
 
 import numpy as np
 from scipy.stats import norm
+from scipy.stats import t as student_t
 
-__all__ = ["CandidateScore", "TraceConfig", "bin_codes", "cv_folds", "holm", "spectral_test", "trace_candidates"]
+__all__ = ["CandidateScore", "TraceConfig", "bin_codes", "cv_folds", "heldout_gain", "holm", "spectral_test",
+           "trace_candidates"]
 
 
 @dataclass(frozen=True)
@@ -52,6 +57,9 @@ class TraceConfig:
     n_perm: int = 199
     alpha: float = 0.01
     min_effect: float = 0.05
+    min_size_um: float = 0.5
+    gain_z: float = 2.0
+    gain_levels: tuple[int, ...] = (4, 8, 16, 64)
     block_size: int = 24
     max_points: int = 40000
     seed: int = 0
@@ -84,6 +92,9 @@ class CandidateScore:
     spectral: dict | None = None
     #: which tests made it significant: "learner" (held-out bin-mean fit) and / or "spectral"
     significant_by: list[str] = field(default_factory=list)
+    #: held-out gain in µm along the normal on clouds not fitted on (``heldout_gain``), or None (identity candidates,
+    #: which are held out inside their own groups)
+    gain: dict | None = None
 
     @property
     def rank_score(self) -> float:
@@ -96,6 +107,8 @@ class CandidateScore:
         d = asdict(self)
         for k in ("score", "score_normal", "p_value", "p_holm", "null_mean", "null_p95"):
             d[k] = float(d[k])
+        if d["gain"] is not None and not np.isfinite(d["gain"]["se_um2"]):
+            d["gain"]["se_um2"] = None
         d["score_axes"] = {k: float(v) for k, v in self.score_axes.items()}
         return d
 
@@ -180,14 +193,17 @@ def _fold_scores(
 
 def score_candidate(
     R: np.ndarray, x: np.ndarray, kind: str, folds: np.ndarray, cfg: TraceConfig, rng: np.random.Generator | None,
-    normal_res: np.ndarray | None = None,
+    normal_res: np.ndarray | None = None, groups: np.ndarray | None = None,
 ) -> dict:
     """Held-out explained variance of ``R`` (N, A) by ``x`` and its permutation null (when ``rng`` is given).
 
     Continuous candidates are fitted at every resolution of ``cfg.bin_levels`` (quantile bins: 16 follow a smooth
     trend, 64-192 follow an oscillation of many periods over the candidate's range); the score is the best
     resolution's, and each permutation's null score is its own best over the same resolutions (the same permuted
-    rows for every resolution), so the maximum is paid for in the p-value."""
+    rows for every resolution), so the maximum is paid for in the p-value.
+
+    With ``groups`` (continuous candidates, folds by group), the best resolution's fit of the residual along the
+    normal (``normal_res``; else the axes summed) is also scored per held-out group: ``gain`` (``heldout_gain``)."""
     A = R.shape[1]
     levels = (0,) if kind == "identity" else tuple(cfg.bin_levels)
     L = len(levels)
@@ -195,6 +211,18 @@ def score_candidate(
     tot_sse, tot_sst = np.zeros((L, A)), np.zeros(A)
     tot_null = np.zeros((L, P, A))
     n_sse, n_sst = np.zeros(L), 0.0
+    want_gain = groups is not None and kind != "identity"
+    r1 = (normal_res if normal_res is not None else R.sum(axis=1)) if want_gain else None
+    glv = tuple(cfg.gain_levels)
+    if want_gain:
+        assert groups is not None
+        _, gidx = np.unique(groups, return_inverse=True)
+        gidx = gidx.reshape(-1)
+        G = int(gidx.max()) + 1
+        g_n = np.bincount(gidx, minlength=G).astype(float)
+        g_before, g_mae_before = np.zeros(G), np.zeros(G)
+        g_after, g_mae_after = np.zeros((len(glv), G)), np.zeros((len(glv), G))
+        g_held = np.zeros(G, bool)
     for f in np.unique(folds):
         te = folds == f
         tr = ~te
@@ -214,6 +242,22 @@ def score_candidate(
                 n_sse[li] += float(s2[0])
                 if li == 0:
                     n_sst += float(t2[0])
+        if want_gain:
+            # The correction's gain over the training groups' mean (a constant is no candidate's effect), per
+            # held-out group, at every resolution of ``gain_levels`` (the best one is reported).
+            assert r1 is not None
+            base = r1[te] - float(r1[tr].mean())
+            gte = gidx[te]
+            g_before += np.bincount(gte, base**2, minlength=G)
+            g_mae_before += np.bincount(gte, np.abs(base), minlength=G)
+            g_held[gte] = True
+            for li, nbins in enumerate(glv):
+                ctr, cte, nb = bin_codes(x[tr], x[te], kind, nbins)
+                rt = r1[tr] - float(r1[tr].mean())
+                m = np.bincount(ctr, weights=rt, minlength=nb) / (np.bincount(ctr, minlength=nb) + cfg.shrink)
+                after = base - m[cte]
+                g_after[li] += np.bincount(gte, after**2, minlength=G)
+                g_mae_after[li] += np.bincount(gte, np.abs(after), minlength=G)
     if tot_sst.sum() <= 0:
         raise ValueError("the residual has no variance on the held-out folds (too few points or groups to trace)")
     per_level = 1.0 - tot_sse.sum(axis=1) / tot_sst.sum()
@@ -224,10 +268,43 @@ def score_candidate(
     out = {"score": score, "score_axes": axes,
            "score_normal": float(1.0 - n_sse[best] / n_sst) if n_sst > 0 else 0.0,
            "bins": int(levels[best])}
+    if want_gain:
+        k = g_held & (g_n > 0)
+        gb = int(np.argmin(g_after[:, k].sum(axis=1)))
+        out["gain"] = {**heldout_gain(g_before[k], g_after[gb, k], g_mae_before[k], g_mae_after[gb, k], g_n[k], cfg),
+                       "bins": int(glv[gb])}
     if rng is not None:
         null = (1.0 - tot_null.sum(axis=2) / tot_sst.sum()).max(axis=0)
         out.update(_p_value(score, null))
     return out
+
+
+def heldout_gain(
+    sse_before: np.ndarray, sse_after: np.ndarray, sae_before: np.ndarray, sae_after: np.ndarray, n: np.ndarray,
+    cfg: TraceConfig,
+) -> dict:
+    """The gain of a correction on groups (clouds / profiles) it was not fitted on, in µm, from per-group sums (mm)
+    of the squared and absolute residual along the normal before / after it, and the group sizes ``n``.
+
+    ``mse_um2``: mean over groups of the per-group drop of the mean squared residual (µm²), ``se_um2`` its standard
+    error over groups (groups are the independent units: neighbouring points, profiles and scans share errors);
+    ``size_um`` = √max(mse_um2, 0): the RMS of the part of the residual the correction predicts on unseen groups —
+    the effect's held-out size; ``rms_um`` / ``mae_um``: drop of the pooled RMS / MAE (µm). ``passes``: size ≥
+    ``cfg.min_size_um`` and mse_um2 ≥ z × se_um2 (and > 0), z = ``cfg.gain_z`` × t₀.₉₇₅(G − 1) / 1.96."""
+    n = np.maximum(n, 1.0)
+    d = (sse_before - sse_after) / n * 1e6
+    G = len(d)
+    mse = float(d.mean()) if G else 0.0
+    se = float(d.std(ddof=1) / np.sqrt(G)) if G > 1 else float("inf")
+    size = float(np.sqrt(max(mse, 0.0)))
+    N = float(n.sum()) if G else 1.0
+    rms = float(np.sqrt(sse_before.sum() / N) - np.sqrt(max(sse_after.sum(), 0.0) / N)) * 1e3 if G else 0.0
+    mae = float((sae_before.sum() - sae_after.sum()) / N) * 1e3 if G else 0.0
+    # Few groups estimate the s.e. poorly: the factor grows like Student's t quantile with G − 1 degrees of freedom
+    # (gain_z at many groups; × 2.2 at 3 groups, × 1.2 at 8).
+    z = cfg.gain_z * (float(student_t.ppf(0.975, G - 1)) / float(norm.ppf(0.975)) if G > 1 else 1.0)
+    return {"mse_um2": mse, "se_um2": se, "size_um": size, "rms_um": rms, "mae_um": mae, "n_groups": int(G),
+            "z": z, "passes": bool(G > 1 and mse > 0 and size >= cfg.min_size_um and mse >= z * se)}
 
 
 def _p_value(score: float, null: np.ndarray) -> dict:
@@ -410,7 +487,7 @@ def trace_candidates(
             res = {"score": 0.0, "score_axes": dict.fromkeys("xyz", 0.0), "score_normal": 0.0, "p_value": 1.0,
                    "null_mean": 0.0, "null_p95": 0.0}
         else:
-            res = score_candidate(R, x, kind, folds, cfg, rng, nres)
+            res = score_candidate(R, x, kind, folds, cfg, rng, nres, groups=groups if kind != "identity" else None)
         spec = None
         if cfg.spectral and kind != "identity" and name in spectral and np.unique(x).size > 2:
             spec = spectral_test(R, x, groups, folds_group, cfg, np.random.default_rng([cfg.seed, i, 1]))
@@ -419,7 +496,7 @@ def trace_candidates(
             name=name, kind=kind, score=res["score"], score_axes=res["score_axes"], score_normal=res["score_normal"],
             p_value=res["p_value"], null_mean=res["null_mean"], null_p95=res["null_p95"],
             description=m.get("description", ""), unit=m.get("unit", ""), in_model=bool(m.get("in_model", False)),
-            extra={"bins": res["bins"]} if "bins" in res else {}, spectral=spec,
+            extra={"bins": res["bins"]} if "bins" in res else {}, spectral=spec, gain=res.get("gain"),
         ))
     # One Holm family over every test made (learner tests of all candidates + spectral tests).
     pv = [s.p_value for s in scores] + [s.spectral["p_value"] for s in scores if s.spectral]
@@ -427,7 +504,13 @@ def trace_candidates(
     k = len(scores)
     for s, pa in zip(scores, adj[:k], strict=True):
         s.p_holm = float(pa)
-        s.significant_by = ["learner"] if (pa <= cfg.alpha and s.score >= cfg.min_effect) else []
+        # Continuous candidates: by their held-out gain in µm on unseen groups (size and uncertainty); identity
+        # candidates (scored inside their own groups; diagnostic): by the share of the residual they explain.
+        # With very few held-out groups the s.e. is poorly known: a continuous candidate explaining ≥ min_effect of
+        # the residual with a held-out size ≥ min_size_um also counts (the size check is the same).
+        big = ((s.gain["passes"] or (s.score >= cfg.min_effect and s.gain["size_um"] >= cfg.min_size_um))
+               if s.gain is not None else s.score >= cfg.min_effect)
+        s.significant_by = ["learner"] if (pa <= cfg.alpha and big) else []
     for s, pa in zip([s for s in scores if s.spectral], adj[k:], strict=True):
         assert s.spectral is not None
         s.spectral["p_holm"] = float(pa)
