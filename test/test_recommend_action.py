@@ -101,7 +101,10 @@ def test_action_matches_service_and_sends_feedback(rig):
     assert [f.orientations_evaluated for f in fb] == list(range(1, total + 1))
     assert fb[-1].best_p95_abs_error == pytest.approx(res.p95_abs_error_after, rel=1e-12)
     bests = [f.best_p95_abs_error for f in fb]
-    assert all(b2 <= b1 for b1, b2 in itertools.pairwise(bests))
+    # the running best falls over the search; when the answer keeps the current set-up (its predicted gain inside
+    # its uncertainty) the last report is the kept set-up's figure, which may be above the search's best
+    kept = "keep the current set-up" in res.message
+    assert all(b2 <= b1 for b1, b2 in itertools.pairwise(bests[:-1] if kept else bests)), (bests, res.message)
 
 
 def test_action_cancel_stops_the_search(rig):
