@@ -24,6 +24,26 @@ GENERATED = ("msg", "srv", "action")
 MAY_IMPORT = re.compile(r"^May import:\s*(.+?)\.?\s*$", re.M)
 
 
+def import_statements(path: Path, module: str) -> list[tuple[int, str, list[str]]]:
+    """(line, absolute module, imported names) of every import statement in ``path`` (the module ``module``), at
+    any depth, relative imports resolved: ``import a.b`` gives (line, "a.b", []), ``from ..c import d, e`` gives
+    (line, "<package of module minus one level>.c", ["d", "e"])."""
+    base = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    out: list[tuple[int, str, list[str]]] = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            out += [(node.lineno, a.name, []) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                parts = base.split(".")
+                parts = parts[: len(parts) - (node.level - 1)]
+                mod = ".".join(parts + ([node.module] if node.module else []))
+            else:
+                mod = node.module or ""
+            out.append((node.lineno, mod, [a.name for a in node.names]))
+    return out
+
+
 @dataclass
 class Edge:
     """``src`` imports ``dst`` (dotted module names) at ``line`` of ``src``."""
@@ -74,30 +94,17 @@ class ImportGraph:
         return dotted or None
 
     def _parse(self, name: str, path: Path) -> None:
-        is_pkg = path.name == "__init__.py"
-        base = name if is_pkg else name.rpartition(".")[0]
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
-            targets: list[str] = []
-            if isinstance(node, ast.Import):
-                targets = [a.name for a in node.names]
-            elif isinstance(node, ast.ImportFrom):
-                if node.level:
-                    parts = base.split(".")
-                    parts = parts[: len(parts) - (node.level - 1)]
-                    mod = ".".join(parts + ([node.module] if node.module else []))
-                else:
-                    mod = node.module or ""
-                for a in node.names:
-                    sub = f"{mod}.{a.name}"
-                    targets.append(sub if sub in self.modules or sub in self._generated() else mod)
-            else:
-                continue
+        for line, mod, names in import_statements(path, name):
+            # `from P import n` is an edge to the module P.n when it exists, else to P (a name defined in P)
+            targets = [mod] if not names else [
+                f"{mod}.{n}" if f"{mod}.{n}" in self.modules or f"{mod}.{n}" in self._generated() else mod
+                for n in names]
             for t in targets:
                 dst = self._resolve(t)
                 if dst is None:
-                    self.external.append(Edge(name, t, node.lineno))
+                    self.external.append(Edge(name, t, line))
                 elif dst != name:
-                    self.edges.append(Edge(name, dst, node.lineno))
+                    self.edges.append(Edge(name, dst, line))
 
     def _generated(self) -> set[str]:
         return {f"{self.package}.{g}" for g in GENERATED}

@@ -12,12 +12,14 @@ interpreter that imports every core module has no ROS module loaded; ``xmetro pr
 
 from __future__ import annotations
 
-import ast
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from import_graph import import_statements
 
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "xmetro_ros"
@@ -45,21 +47,10 @@ def _module_of(path: Path) -> str:
 
 def _imports(path: Path) -> list[tuple[int, str]]:
     """(line, absolute dotted name) of every import in ``path`` (any depth; ``from a import b`` gives a.b too)."""
-    mod = _module_of(path)
-    pkg = mod if path.name == "__init__.py" else mod.rpartition(".")[0]
     out = []
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
-        if isinstance(node, ast.Import):
-            out += [(node.lineno, a.name) for a in node.names]
-        elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = pkg.split(".")
-                base = base[: len(base) - (node.level - 1)]
-                target = ".".join(base + ([node.module] if node.module else []))
-            else:
-                target = node.module or ""
-            out.append((node.lineno, target))
-            out += [(node.lineno, f"{target}.{a.name}") for a in node.names]
+    for line, mod, names in import_statements(path, _module_of(path)):
+        out.append((line, mod))
+        out += [(line, f"{mod}.{n}") for n in names]
     return out
 
 
