@@ -25,6 +25,9 @@ model set's network (weights and normalisation, rebuilt from its ONNX: :mod:`xme
 fine-tuned on the campaign's scans; a prior of other features or another layout than ``--profile``'s is refused
 before any data is read. The card's ``prior`` records it.
 
+A campaign of single profiles (``format: xmetro-profile-campaign/1``: a profilometer known only from its data)
+goes to :mod:`xmetro_ros.apps.calibrate_profiles` (``--iterations``; docs/real-data.md).
+
 Lengths in mm in the reports. Exit code 2 on a campaign error, with its message.
 """
 
@@ -64,6 +67,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--prior", default=None, metavar="MODEL_DIR|default",
                    help="warm-start the pointnet_multi network from this model set (a virtual scanner's, or "
                    "'default': the packaged one) and fine-tune it on the campaign; its layout must be --profile's")
+    p.add_argument("--iterations", type=int, default=1000,
+                   help="profile campaigns (format xmetro-profile-campaign/1) only: CatBoost iterations of d")
     p.add_argument("--no-uncertainty", action="store_true",
                    help="train on every scan; no conformal calibration nor coverage (the card has no 'uncertainty')")
     p.set_defaults(func=run)
@@ -216,12 +221,19 @@ def calibrate(campaign_path: str | Path, out: str | Path, *, profile: str = "qui
 def run(args: argparse.Namespace) -> int:
     """``xmetro calibrate``: returns the exit code (2 with the reason on a campaign error)."""
     from ..calibrate.campaign_file import CampaignError
+    from ..calibrate.profile_campaign import PROFILE_CAMPAIGN_FORMAT, campaign_format
+    from ..scan.profiles import ProfileDataError
 
     fams = tuple(f.strip() for f in args.families.split(",") if f.strip())
     try:
+        if Path(args.campaign).is_file() and campaign_format(args.campaign) == PROFILE_CAMPAIGN_FORMAT:
+            from .calibrate_profiles import calibrate_profiles
+
+            calibrate_profiles(args.campaign, args.out, iterations=args.iterations, seed=args.seed)
+            return 0
         calibrate(args.campaign, args.out, profile=args.profile, families=fams, seed=args.seed,
                   max_points=args.max_points, uncertainty=not args.no_uncertainty, prior=args.prior)
-    except (CampaignError, ValueError, FileNotFoundError) as e:
+    except (CampaignError, ProfileDataError, ValueError, FileNotFoundError) as e:
         print(f"xmetro calibrate: error: {e}")
         return 2
     return 0

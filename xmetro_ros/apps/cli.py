@@ -25,6 +25,8 @@ AREAS: dict[str, tuple[str, str]] = {
     "fleet": ("xmetro_ros.apps.fleet", "re-judge many bags on Dask (local processes or a cluster)"),
     "loop": ("xmetro_ros.apps.loop", "trace the residual of the model to an undeclared effect and add it"),
     "calibrate": ("xmetro_ros.apps.calibrate", "train a model of a real scanner from a recorded calibration campaign"),
+    "real-data": ("xmetro_ros.apps.real_data",
+                  "calibrate on real profiles of a certified sphere and score the model on the held-out list"),
     "parts": ("xmetro_ros.apps.parts", "test parts from code: write their meshes, run the generalisation study"),
     "verify-recommend": ("xmetro_ros.apps.verify_recommend",
                          "follow the rescan recommendation in the virtual scanner: predicted vs actual error"),

@@ -14,7 +14,8 @@ def register(subparsers) -> None:
     """Add ``xmetro loop`` to the ``xmetro`` sub-commands."""
     p = subparsers.add_parser("loop", help="trace the residual of the model to an undeclared effect and add it",
                               description=__doc__)
-    p.add_argument("inputs", nargs="*", help="MCAP bags, NIST .xyz files/dir, or the AT C5 profile dir")
+    p.add_argument("inputs", nargs="*", help="MCAP bags, NIST .xyz files/dir, the AT C5 profile dir, or .txt lists "
+                   "of laser-line profile files (sphere only)")
     p.add_argument("--campaign", default=None, help="calibration campaign file (xmetro-campaign/1) instead of inputs")
     p.add_argument("--artifact", default=None, help="nominal artifact, e.g. sphere:radius=50,center=fit")
     p.add_argument("--out", required=True, help="output directory (report.json, report.md, plots, model/)")

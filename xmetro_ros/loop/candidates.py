@@ -2,15 +2,19 @@
 
 Fields: every per-point field of the input, named ``field_<name>`` (the name the feature registry resolves, so a
 selected field becomes a model feature the node reads from the PointCloud2). Fields named like an identity
-(``pass``, ``profile``, ``pose``, ``*_id``) are identity candidates, held out inside their group.
+(``pass``, ``profile``, ``pose``, ``*_id``) are identity candidates, held out inside their group; with profile data
+(``hold_by="profile"``) an identity field names what profiles share (``pose``: the sensor position of repeats), is
+not combined with the profile and is held out by whole profiles (``trace``: identities spanning groups).
 Derived (when the input gives them): ``range`` (mm to the laser source / scanner), ``incidence_angle`` and
 ``viewing_angle`` (deg, nominal normal vs direction to source / camera), ``line_position`` (mm along the laser
 line), ``scan_position`` (mm along the scan direction), ``x``/``y``/``z`` (mm), ``curvature`` (surface variation
 of the 16 nearest neighbours, the point left out), ``density`` (points per mm², 8th neighbour),
-``profile_identity`` and ``cloud_identity``. A derived candidate duplicating a field is dropped; candidates
-equivalent to a model feature are flagged ``in_model`` (reported as controls, never selected). When an artifact
-position was fitted, position-like candidates (``POSITION_LIKE``) are flagged ``confounded`` (traced, reported,
-never selected). ``SPECTRAL_NAMES`` also get the trace's spectral test.
+``profile_identity`` and ``cloud_identity``; with profile data whose repeats share a ``pose`` field,
+``pose_line_pattern`` (the pose × 0.5 mm cells along the line). A derived candidate duplicating a field is
+dropped; candidates equivalent to a model feature (by name, or as a column of the model's features up to a
+linear map or its magnitude, |r| ≥ 0.999) are flagged ``in_model`` (reported as controls, never selected).
+When an artifact position was fitted, position-like candidates (``POSITION_LIKE``) are flagged ``confounded``
+(traced, reported, never selected). ``SPECTRAL_NAMES`` also get the trace's spectral test.
 """
 
 from __future__ import annotations
@@ -41,7 +45,12 @@ DERIVED: dict[str, tuple[str, str, str | None]] = {
     "density": ("1/mm²", "local point density from the 8th-neighbour distance", None),
     "profile_identity": ("id", "identity of each profile (per-profile / per-pose offset)", None),
     "cloud_identity": ("id", "identity of each cloud (per-cloud offset)", None),
+    "pose_line_pattern": ("id", "identity of (sensor position, 0.5 mm cell along the line): an error shape that "
+                          "repeats at a position (speckle, surface texture, a per-pose error that is no rigid offset)",
+                          None),
 }
+#: Cell along the laser line of ``pose_line_pattern`` (mm): a few points of a profile, much shorter than a profile.
+PATTERN_CELL_MM = 0.5
 FIELD_DUPLICATES = {"line_position": "u", "scan_time": "t"}
 #: Units of the fields our scans carry (t: s since the scan start; u, s: mm along the line / scan direction).
 FIELD_UNITS = {"t": "s", "u": "mm", "s": "mm", "line": "id"}
@@ -123,7 +132,8 @@ def build_candidates(
 
     def add(name: str, v: np.ndarray, kind: str, unit: str, desc: str, source: str, equiv: str | None) -> None:
         vals[name] = np.asarray(v, dtype=float)
-        in_model = name in feats or (equiv in feats if equiv else False)
+        in_model = (name in feats or (equiv in feats if equiv else False)
+                    or (kind == "continuous" and _duplicates_a_feature(vals[name], data.X)))
         conf = FITTED_REASON if (fitted and name in POSITION_LIKE) else ""
         info[name] = CandidateInfo(name, kind, unit, desc, source, in_model, conf)
 
@@ -138,8 +148,10 @@ def build_candidates(
             continue
         kind = "identity" if (fname.lower() in IDENTITY_FIELD_NAMES or fname.lower().endswith("_id")) else "continuous"
         v = np.asarray(arr, dtype=float)
-        if kind == "identity":
-            v = _combine(data.group, v)  # an identity lives inside its cloud
+        if kind == "identity" and data.hold_by != "profile":
+            # An identity lives inside its cloud. A profile has one value of it (combined, it would be the profile):
+            # with profile data it names what the profiles share (the sensor position of repeats).
+            v = _combine(data.group, v)
         add(f"field_{fname}", v, kind, FIELD_UNITS.get(fname, ""), f"input field {fname!r}", "field", None)
 
     g = data.geometry
@@ -170,6 +182,12 @@ def build_candidates(
         elif "line" in data.fields:
             add("profile_identity", _combine(data.group, data.fields["line"]), "identity",
                 *DERIVED["profile_identity"][:2], "derived", None)
+    if wanted("pose_line_pattern") and data.hold_by == "profile" and "pose" in data.fields and "u" in g:
+        # Repeats of one sensor position (field ``pose``) see the same error shape along the line; the per-profile
+        # fit of the nominal absorbs each profile's rigid offset, so only a cell-wise identity can show it.
+        cell = np.floor(np.asarray(g["u"], dtype=float) / PATTERN_CELL_MM)
+        add("pose_line_pattern", _combine(np.asarray(data.fields["pose"], dtype=float), cell), "identity",
+            *DERIVED["pose_line_pattern"][:2], "derived", None)
     if wanted("cloud_identity") and data.hold_by == "cloud" and len(data.groups) > 1:
         add("cloud_identity", data.group, "identity", *DERIVED["cloud_identity"][:2], "derived", None)
 
@@ -182,6 +200,21 @@ def build_candidates(
         vals.pop(name, None)
         info.pop(name, None)
     return vals, info
+
+
+def _duplicates_a_feature(v: np.ndarray, X: np.ndarray, r_min: float = 0.999) -> bool:
+    """True when ``v`` is (up to a linear map, or of the feature's magnitude) a column of the model's features X:
+    e.g. a profile's line position is its feature ``u``, its incidence the magnitude of ``inc_plane``. Such a
+    candidate is a control, never a new variable (re-adding a feature only re-fits the model)."""
+    v = np.asarray(v, dtype=float)
+    if len(v) < 3 or np.std(v) == 0:
+        return False
+    for j in range(X.shape[1]):
+        f = np.asarray(X[:, j], dtype=float)
+        for g in (f, np.abs(f)):
+            if np.std(g) > 0 and abs(np.corrcoef(v, g)[0, 1]) >= r_min:
+                return True
+    return False
 
 
 def _combine(group: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -55,10 +55,12 @@ def apply_offsets(normals: np.ndarray, keys: np.ndarray, uk: np.ndarray, w: np.n
 
 def cross_fit_offsets(
     residual: np.ndarray, normals: np.ndarray, keys: np.ndarray, order: np.ndarray, block_size: int = 24,
-    ridge: float = 1e-3,
+    ridge: float = 1e-3, groups: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Out-of-sample per-key offset correction (N, 3) mm: fitted on one block parity, applied to the other."""
-    par = block_parity(order, block_size)
+    """Out-of-sample per-key offset correction (N, 3) mm: fitted on one block parity, applied to the other. With
+    ``groups`` (for keys shared by several groups, e.g. the repeats of a sensor position) the halves are the
+    groups' parities instead: fitted on some repeats, applied to the others."""
+    par = (np.asarray(groups, dtype=np.int64) % 2) if groups is not None else block_parity(order, block_size)
     out = np.zeros((len(keys), 3))
     for p in (0, 1):
         fit = par != p

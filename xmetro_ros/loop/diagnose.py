@@ -33,6 +33,10 @@ FIXES = {
     "cloud": ("per-scan offsets: the artifact's placement or the position given for each scan (fixture, fitted "
               "centre) differs from scan to scan; check the fixture / give known positions"),
     "field": "offsets per value of an identity field: find what the field identifies and register it",
+    "pattern": ("the error repeats at a sensor position as a shape along the laser line (speckle, the surface's "
+                "texture, a per-pose error that is no rigid offset): only repeats of that position can correct it "
+                "(a per-pose correction map, where a cell revisits fixed poses); at a new position no feature of the "
+                "profile predicts it, and U has to cover it"),
     "oscillation": ("an oscillation whose phase is not locked to the variable (it changes from scan to scan): a "
                     "vibration of the head or the axis; isolate it, or record its phase (e.g. an accelerometer "
                     "field) so that a feature can follow it"),
@@ -53,6 +57,8 @@ def fix_for(name: str, hold_by: str) -> tuple[str, str]:
         return "per-profile rigid offset inside each scan", FIXES["profile"]
     if name == "cloud_identity":
         return "per-scan rigid offset", FIXES["cloud"]
+    if name == "pose_line_pattern":
+        return "per-position pattern along the laser line (0.5 mm cells)", FIXES["pattern"]
     low = name.lower()
     if "pass" in low:
         return "per-pass rigid offset", FIXES["pass"]

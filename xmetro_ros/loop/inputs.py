@@ -1,11 +1,14 @@
-"""Inputs of the loop → LoopData: our scans (MCAP bags or in-memory ``Scan``s) and measured files (NIST TLS spheres,
-AT C5 profiler sphere) through ``xmetro_ros.scan.measured``. Lengths mm, artifact frame.
+"""Inputs of the loop → LoopData: our scans (MCAP bags or in-memory ``Scan``s), measured files (NIST TLS spheres,
+AT C5 profiler sphere) through ``xmetro_ros.scan.measured``, and lists of single laser-line profiles of a certified
+sphere (``scan.profiles``, ``calibrate.profile_table``). Lengths mm, artifact frame (profiles: sensor frame).
 
 Ground truth: ``targets.errors_with_fit`` = nominal − measured with the nominal radius; ``center=fit`` fits the
 centre per cloud (scans, NIST spheres: one placement each) or once over all profiles (AT C5: one sphere seen by 15
-robot poses). A radius far from the data raises ``targets.FitError``.
+robot poses). A radius far from the data raises ``targets.FitError``. Profile lists: the arc is always fitted per
+profile (centre and radius r ≤ R: the laser plane cuts the sphere at an unknown offset), whatever ``center`` says.
 Features of the current model: the study's 14 (``features.STUDY_FEATURES``) for scans; for measured sets, whose
-scan settings are unknown, the study's geometric features only (``MEASURED_FEATURES``).
+scan settings are unknown, the study's geometric features only (``MEASURED_FEATURES``); for profile lists, the
+profile features (``calibrate.profile_table.PROFILE_FEATURES``).
 """
 
 from __future__ import annotations
@@ -21,11 +24,13 @@ from ..scan.geometry import unit, vec3
 from ..scan.scan import Scan
 from .data import LoopData, LoopInputError
 
-__all__ = ["MEASURED_FEATURES", "check_inputs", "detect_kind", "from_atc5", "from_campaign", "from_nist", "from_scans",
-           "load_inputs", "load_path"]
+__all__ = ["MEASURED_FEATURES", "PROFILE_SUFFIXES", "check_inputs", "detect_kind", "from_atc5", "from_campaign",
+           "from_nist", "from_profiles", "from_scans", "load_inputs", "load_path"]
 
 # Study features that need no scan settings (measured sets do not declare them).
 MEASURED_FEATURES = ["N_x", "N_y", "N_z", "Inc", "ViewAng", "R_y", "ang"]
+#: Profile files a profile list (``.txt``) may name (``scan.profiles``).
+PROFILE_SUFFIXES = (".csv", ".npy", ".npz")
 
 
 def _errors(points: np.ndarray, artifact: Artifact, fit_center: bool) -> tuple[np.ndarray, Artifact]:
@@ -186,8 +191,82 @@ def from_atc5(path: Path, artifact: Artifact, fit_center: bool) -> LoopData:
     )
 
 
+def from_profiles(path: Path, artifact: Artifact, fit_center: bool = True) -> LoopData:
+    """A list file of single laser-line profiles of a certified sphere (``scan.profiles.load_profile_list``) →
+    LoopData through ``calibrate.profile_table.build_profile_table``; sensor frame, mm.
+
+    The artifact must be a sphere; only its radius is used (the certified R). The arc is **always fitted per
+    profile** (centre (x, z) and radius r ≤ R: the laser plane cuts the sphere at an unknown out-of-plane offset), so
+    ``fit_center`` (and a given centre) changes nothing; the description says so (``fit_center`` True). Rows: the
+    table's ``kept`` points (the sphere points the product keeps). Points (x, 0, z), normals (n_x, 0, n_z), errors the
+    table's (nominal − measured along the arc's normal, per axis; y carries none), X the table's
+    ``PROFILE_FEATURES``; one group per profile (``hold_by="profile"``), ``order`` the rank along x in the profile.
+    Field ``pose``: an id of the sensor position the repeats of a profile share (an identity the loop tests across
+    the repeats: ``candidates``). Geometry: ``u`` = x; ``L`` = ``V`` = the sensor axis (0, 0, ±1) toward the sensor
+    (the side the arc faces): the laser fan's origin and the camera of a profilometer known only from its data are
+    unknown, so the incidence / viewing angles are the in-plane angle from the sensor axis (|``inc_plane``|), and no
+    ``source_distance`` (the range coordinate is the feature ``w``). Profiles without an arc are left out (counted
+    in ``artifact.failures``); none with an arc → LoopInputError."""
+    from ..calibrate.profile_table import PROFILE_FEATURES, build_profile_table
+    from ..scan.artifacts import Sphere
+    from ..scan.profiles import load_profile_list
+
+    path = Path(path)
+    if not isinstance(artifact, Sphere):
+        raise LoopInputError(f"profile list {path}: the artifact must be a sphere (its certified radius), "
+                             f"got {artifact.kind}")
+    records = load_profile_list(path)
+    try:
+        tab = build_profile_table(records, artifact.radius)
+    except ValueError as e:  # no profile holds an arc of the sphere
+        raise LoopInputError(f"profile list {path}: {e}") from e
+    k = np.flatnonzero(tab.kept)
+    prof = tab.profile[k]
+    used, group = np.unique(prof, return_inverse=True)
+    group = group.reshape(-1)
+    xz = tab.xz[k]
+    n2 = tab.normals[k]
+    n = len(k)
+    zeros = np.zeros(n)
+    points = np.column_stack([xz[:, 0], zeros, xz[:, 1]])
+    normals = np.column_stack([n2[:, 0], zeros, n2[:, 1]])
+    # The sensor's side: the kept arc faces it (normals within ARC_MAX_ANGLE_DEG of its axis).
+    side = np.sign(np.bincount(group, n2[:, 1]))
+    side[side == 0] = 1.0
+    L = np.zeros((n, 3))
+    L[:, 2] = side[group]
+    # Rank along x inside each profile.
+    srt = np.lexsort((xz[:, 0], group))
+    order = np.empty(n, dtype=np.int64)
+    order[srt] = np.arange(n) - np.searchsorted(group[srt], group[srt])
+    # One id per sensor position, the same in every list of the same folder (lists read apart, e.g. on Dask workers,
+    # or a training and a validation list given together, keep repeats of one position under one id).
+    root = path.resolve().parent
+    pos_ids = {p_: _position_id(root, p_) for p_ in sorted({tab.positions[i] for i in used})}
+    pose = np.array([pos_ids[tab.positions[i]] for i in used], dtype=float)[group]
+    fails = dict(tab.failures)
+    return LoopData(
+        points=points, normals=normals, errors=np.asarray(tab.errors[k], dtype=float),
+        X=np.asarray(tab.X[k], dtype=np.float32), feature_names=list(PROFILE_FEATURES), fields={"pose": pose},
+        group=group.astype(np.int64), order=order, geometry={"u": xz[:, 0].copy(), "L": L, "V": L.copy()},
+        group_names=[tab.names[i] for i in used], source="profiles", hold_by="profile",
+        artifact={"nominal": Sphere(artifact.radius).to_dict(), "fit_center": True,
+                  "fit": "arc fitted per profile (centre x, z and radius r <= R), certified radius R",
+                  "frame": "sensor", "list": path.name, "n_profiles": len(used), "n_positions": len(pos_ids),
+                  "failures": {"count": len(fails), "examples": dict(list(fails.items())[:5])}},
+    )
+
+
+def _position_id(root: Path, position: str) -> float:
+    """A stable id (< 2⁴⁰, exact in float64) of a sensor position of the profiles under ``root``."""
+    import hashlib
+
+    return float(int.from_bytes(hashlib.blake2b(f"{root}/{position}".encode(), digest_size=5).digest(), "big"))
+
+
 def detect_kind(path: Path) -> str:
-    """"bag" (.mcap or rosbag2 dir), "nist" (.xyz file or dir of them), "atc5" (dir with RobPoses.rob)."""
+    """"bag" (.mcap or rosbag2 dir), "nist" (.xyz file or dir of them), "atc5" (dir with RobPoses.rob), "profiles"
+    (a .txt list whose lines name profile files, ``PROFILE_SUFFIXES``)."""
     path = Path(path)
     if not path.exists():
         raise LoopInputError(f"input {path} does not exist")
@@ -196,14 +275,37 @@ def detect_kind(path: Path) -> str:
             return "bag"
         if path.suffix == ".xyz":
             return "nist"
+        if path.suffix == ".txt":
+            _check_profile_list(path)
+            return "profiles"
     elif (path / "RobPoses.rob").exists():
         return "atc5"
     elif (path / "metadata.yaml").exists() or any(path.glob("*.mcap")):
         return "bag"
     elif any(path.glob("*.xyz")):
         return "nist"
-    raise LoopInputError(f"cannot tell what {path} holds (expected an .mcap bag, NIST .xyz files or an AT C5 "
-                         "profile directory with RobPoses.rob)")
+    raise LoopInputError(f"cannot tell what {path} holds (expected an .mcap bag, NIST .xyz files, an AT C5 "
+                         "profile directory with RobPoses.rob or a .txt list of profile files)")
+
+
+def _check_profile_list(path: Path) -> None:
+    """A profile list names profile files only (one per line; blank and ``#`` lines skipped): else LoopInputError
+    naming the list, the line and what it holds."""
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as e:
+        raise LoopInputError(f"cannot read the profile list {path}: {e}") from e
+    named = 0
+    for i, line in enumerate(lines, start=1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        if Path(s).suffix.lower() not in PROFILE_SUFFIXES:
+            raise LoopInputError(f"{path}:{i}: {s[:60]!r} is not a profile file ({', '.join(PROFILE_SUFFIXES)}): "
+                                 "a .txt input must list profile files, one per line")
+        named += 1
+    if not named:
+        raise LoopInputError(f"{path}: the profile list names no profile file")
 
 
 def check_inputs(paths: list[str | Path], artifact_spec: str | None, feature_names: list[str] | None = None
@@ -219,6 +321,17 @@ def check_inputs(paths: list[str | Path], artifact_spec: str | None, feature_nam
     kind = kinds.pop()
     if kind != "bag" and art is None:
         raise LoopInputError("measured inputs need --artifact (e.g. sphere:radius=50,center=fit)")
+    if kind == "profiles":
+        from ..calibrate.profile_table import PROFILE_FEATURES
+        from ..scan.artifacts import Sphere
+
+        if not isinstance(art, Sphere):
+            raise LoopInputError(f"profile lists are profiles of a certified sphere: give --artifact "
+                                 f"sphere:radius=<R>,center=fit (got {art.kind if art is not None else None})")
+        if feature_names is not None and list(feature_names) != PROFILE_FEATURES:
+            raise LoopInputError(f"profile lists give only the profile features {PROFILE_FEATURES} (sensor frame, "
+                                 f"no scan settings); the model needs {list(feature_names)}")
+        return kind, art, fit
     if kind != "bag" and feature_names is not None and list(feature_names) != MEASURED_FEATURES:
         raise LoopInputError(f"measured {kind} data give only the features {MEASURED_FEATURES} (no scan settings); "
                              f"the model needs {list(feature_names)}")
@@ -231,6 +344,7 @@ def load_path(p: str | Path, kind: str, art: Artifact | None, fit: bool, feature
     time from ``read_bag`` (an iterator such as ``ros.scan_io.iter_scans`` keeps one raw scan in memory): the table
     of ``from_scans`` over all of them, groups named ``<stem>#<index>``."""
     from ..scan.measured import MeasuredDataError
+    from ..scan.profiles import ProfileDataError
 
     try:
         if kind == "bag":
@@ -248,8 +362,10 @@ def load_path(p: str | Path, kind: str, art: Artifact | None, fit: bool, feature
             raise LoopInputError("measured inputs need --artifact")
         if kind == "nist":
             return from_nist(Path(p), art, fit)
+        if kind == "profiles":
+            return from_profiles(Path(p), art, fit)
         return from_atc5(Path(p), art, fit)
-    except (OSError, UnicodeDecodeError, MeasuredDataError) as e:
+    except (OSError, UnicodeDecodeError, MeasuredDataError, ProfileDataError) as e:
         raise LoopInputError(f"cannot read {p}: {e}") from e
 
 
@@ -257,7 +373,8 @@ def load_inputs(paths: list[str | Path], artifact_spec: str | None, feature_name
                 read_bag: Callable[[Path], Iterable[Scan]] | None = None) -> LoopData:
     """All inputs of one run (they must be of one kind). ``artifact_spec`` (parse_artifact syntax) is required for
     measured files; for bags it overrides the scans' own artifact. ``feature_names``: the features of a given model
-    (bags: any registry features; measured sets: only ``MEASURED_FEATURES``, they declare no scan settings).
+    (bags: any registry features; measured sets: only ``MEASURED_FEATURES``, they declare no scan settings; profile
+    lists: only ``PROFILE_FEATURES``).
     ``read_bag``: reads the scans of a bag (``xmetro_ros.ros.scan_io.iter_scans`` or ``read_scans``; injected so
     that this core module needs no ROS). The same table, input by input on Dask workers:
     ``loop.inputs_dask.load_inputs_dask``."""

@@ -12,9 +12,23 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["LOOP_FAMILIES", "AxisModel", "GivenModel", "NormalCorrector", "fit_family", "fit_normal_corrector"]
+__all__ = ["LOOP_FAMILIES", "AxisModel", "ConstantAxis", "GivenModel", "NormalCorrector", "fit_family",
+           "fit_normal_corrector"]
 
 LOOP_FAMILIES = ("catboost",)
+
+
+@dataclass
+class ConstantAxis:
+    """The model of an axis whose training target is one value (the y axis of laser-line profiles: their points and
+    errors lie in the laser plane, y = 0): predicts that value (mm). A boosted family cannot fit a constant."""
+
+    family: str
+    axes: tuple[int, ...]
+    value: float
+
+    def predict(self, X: np.ndarray, groups: np.ndarray | None = None) -> np.ndarray:
+        return np.full((len(X), 1), self.value)
 
 
 @dataclass
@@ -38,7 +52,8 @@ def fit_family(
     depth: int = 6, learning_rate: float = 0.1, threads: int = 2,
 ) -> AxisModel:
     """Fit ``family`` per axis with LEARN's ``fit_model`` (fixed hyper-parameters, no search) on X (M, F) → y (M, 3)
-    mm. Only CatBoost is offered here (fast, exported by LEARN's ONNX exporter)."""
+    mm; an axis whose target is constant (profiles: y) gets a ``ConstantAxis``. Only CatBoost is offered here (fast,
+    exported by LEARN's ONNX exporter)."""
     from ..learn.train import fit_model
 
     if family not in LOOP_FAMILIES:
@@ -48,7 +63,8 @@ def fit_family(
     if len(X) < 10:
         raise ValueError(f"too few training points to fit the model: {len(X)}")
     params = {"iterations": iterations, "depth": depth, "learning_rate": learning_rate}
-    models = [fit_model(family, X, y[:, a], seed=seed, axes=(a,), params=params, threads=threads) for a in range(3)]
+    models = [ConstantAxis(family, (a,), float(y[0, a])) if np.ptp(y[:, a]) == 0 else
+              fit_model(family, X, y[:, a], seed=seed, axes=(a,), params=params, threads=threads) for a in range(3)]
     return AxisModel(family, models, list(feature_names), params)
 
 

@@ -22,7 +22,7 @@ from .data import LoopData, LoopInputError
 from .diagnose import FIXES, LOCKED_COHERENCE, fix_for, offset_table, oscillation_finding
 from .model import AxisModel, GivenModel, fit_family, fit_normal_corrector
 from .periodic import PERIODIC_NAMES, fit_periodic, frequency_grid, periodic_gain, transfer_compare
-from .trace import TraceConfig, cv_folds, heldout_gain, holm, spectral_test, trace_candidates
+from .trace import TraceConfig, cv_folds, heldout_gain, holm, spans_groups, spectral_test, trace_candidates
 
 __all__ = ["LoopConfig", "LoopResult", "error_summary", "metrics", "run_loop", "split_roles", "trace_gain_um"]
 
@@ -88,9 +88,17 @@ class LoopResult:
     train_mask: np.ndarray | None = None  # rows the model (or, with a given model, its corrector) was fitted on
 
 
-def split_roles(groups: np.ndarray, fractions: tuple[float, float, float], seed: int, need_train: bool) -> np.ndarray:
+def split_roles(groups: np.ndarray, fractions: tuple[float, float, float], seed: int, need_train: bool,
+                units: np.ndarray | None = None) -> np.ndarray:
     """Role per point (0 train, 1 trace, 2 eval), whole groups per role. Needs ≥ 2 trace groups, ≥ 1 eval group
-    and (``need_train``) ≥ 1 train group."""
+    and (``need_train``) ≥ 1 train group. ``units`` (per point): groups that share a unit share a role — the
+    repeats of one sensor position (profile data's ``pose``) then never straddle training and evaluation, and a
+    role holds all the repeats the identity tests need."""
+    if units is not None:
+        u = np.asarray(units, dtype=float)
+        if len(np.unique(u)) >= (4 if need_train else 3):
+            _, ui = np.unique(u, return_inverse=True)
+            return split_roles(ui.reshape(-1), fractions, seed, need_train)
     ug = np.unique(groups)
     need = 4 if need_train else 3
     if len(ug) < need:
@@ -191,7 +199,8 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
         raise ValueError(f"correction must be auto, feature or offset, got {cfg.correction!r}")
     if given is not None and list(given.feature_names) != list(data.feature_names):
         raise LoopInputError("the given model's features differ from the features computed for the input")
-    roles = split_roles(data.group, cfg.fractions, cfg.seed, need_train=True)
+    units = data.fields.get("pose") if data.hold_by == "profile" else None
+    roles = split_roles(data.group, cfg.fractions, cfg.seed, need_train=True, units=units)
     A, B, C = (roles == ROLE_TRAIN), (roles == ROLE_TRACE), (roles == ROLE_EVAL)
     for name, m in (("train", A), ("trace", B), ("eval", C)):
         if m.sum() < 4 * cfg.trace.n_bins:
@@ -251,7 +260,9 @@ def run_loop(data: LoopData, cfg: LoopConfig | None = None, given: GivenModel | 
         summ: dict[str, dict] = {}
         for name in names:
             res = E - mpred - total
-            total += cross_fit_offsets(res, Nrm, cand_vals[name], data.order, cfg.block_size, cfg.offset_ridge)
+            shared = spans_groups(cand_vals[name], data.group)  # repeats share it: fit on some, apply to others
+            total += cross_fit_offsets(res, Nrm, cand_vals[name], data.order, cfg.block_size, cfg.offset_ridge,
+                                       groups=data.group if shared else None)
             uk, w = fit_offsets(res[C], Nrm[C], cand_vals[name][C], cfg.offset_ridge)
             mag = np.linalg.norm(w, axis=1) * 1e3
             summ[name] = {"n_identities_eval": len(uk), "median_um": float(np.median(mag)),

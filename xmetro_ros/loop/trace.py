@@ -13,7 +13,9 @@ Method (per candidate variable ``x``, residual ``R`` (N, 3) mm = actual − pred
   frequency, amplitude and phase coherence across clouds.
 - Held-out score: K-fold cross-validation. Continuous candidates: folds hold out whole groups (clouds or
   profiles). Identity candidates (an identity's effect cannot transfer to an unseen identity): held out by interleaved
-  blocks of points inside each group (fit on some blocks of a profile, score on the others).
+  blocks of points inside each group (fit on some blocks of a profile, score on the others); an identity whose
+  values span groups (the sensor position shared by repeated profiles) by whole groups, like continuous ones (fit on
+  some repeats, score on the others; a value seen in no training fold predicts 0).
   ``score`` = 1 − SSE / SST over the held-out points and the three axes (the fraction of the residual's variance
   explained out of sample; ≤ 0 when the candidate explains nothing).
 - Significance: the same score with the residual rows permuted inside each training fold (``n_perm`` times; the
@@ -42,8 +44,8 @@ import numpy as np
 from scipy.stats import norm
 from scipy.stats import t as student_t
 
-__all__ = ["CandidateScore", "TraceConfig", "bin_codes", "cv_folds", "heldout_gain", "holm", "spectral_test",
-           "trace_candidates"]
+__all__ = ["CandidateScore", "TraceConfig", "bin_codes", "cv_folds", "heldout_gain", "holm", "spans_groups",
+           "spectral_test", "trace_candidates"]
 
 
 @dataclass(frozen=True)
@@ -429,6 +431,12 @@ def spectral_test(
     return out
 
 
+def spans_groups(x: np.ndarray, groups: np.ndarray) -> bool:
+    """True when some value of the identity ``x`` occurs in more than one group."""
+    pairs = np.unique(np.stack([np.asarray(x, dtype=float), np.asarray(groups, dtype=float)], axis=1), axis=0)
+    return bool(len(pairs) > len(np.unique(pairs[:, 0])))
+
+
 def trace_candidates(
     residual: np.ndarray,
     candidates: dict[str, np.ndarray],
@@ -480,7 +488,7 @@ def trace_candidates(
         if not np.all(np.isfinite(x)):
             raise ValueError(f"candidate {name!r} has non-finite values")
         kind = kinds.get(name, "continuous")
-        folds = folds_block if kind == "identity" else folds_group
+        folds = folds_block if (kind == "identity" and not spans_groups(x, groups)) else folds_group
         rng = np.random.default_rng([cfg.seed, i])
         res: dict[str, Any]
         if np.unique(x).size < 2:
