@@ -12,10 +12,17 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["ProfileModelError", "ProfileModelSet"]
+__all__ = ["BIN_DEG", "FORMAT", "N_BINS", "ProfileModelError", "ProfileModelSet", "angle_bins"]
 
 FORMAT = "xmetro-profile-model/1"
-BIN_DEG = 10.0
+BIN_DEG = 10.0  # U's bins of |in-plane incidence|, the one rule for calibration (learn) and prediction (here)
+N_BINS = 9  # 0-90°; 90° and beyond fall in the last bin
+
+
+def angle_bins(inc_deg: np.ndarray) -> np.ndarray:
+    """10° bin index (0..8) of |in-plane incidence| (deg); 90° and beyond fall in the last bin."""
+    a = np.abs(np.asarray(inc_deg, dtype=np.float64))
+    return np.clip(np.floor(a / BIN_DEG), 0, N_BINS - 1).astype(np.int64)
 
 
 class ProfileModelError(ValueError):
@@ -68,9 +75,10 @@ class ProfileModelSet:
     def uncertainty(self, X: np.ndarray) -> np.ndarray:
         """U (M,) mm (NaN where the card's bin was never calibrated)."""
         X = self._check(X)
-        b = np.clip(np.floor(np.abs(X[:, self._inc].astype(np.float64)) / BIN_DEG), 0,
-                    len(self.half_width_mm) - 1).astype(np.int64)
-        return self.half_width_mm[b]
+        if len(self.half_width_mm) != N_BINS:
+            raise ProfileModelError(f"{self.model_dir}: the card has {len(self.half_width_mm)} U bins, expected "
+                                    f"{N_BINS}")
+        return self.half_width_mm[angle_bins(X[:, self._inc])]
 
     def in_domain(self, X: np.ndarray, margin: float = 0.05) -> np.ndarray:
         """(M,) True where every feature lies inside the training range recorded in the card, widened by

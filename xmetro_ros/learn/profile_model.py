@@ -25,19 +25,13 @@ from typing import Any
 
 import numpy as np
 
+from ..judge.profile_model_set import BIN_DEG, FORMAT, N_BINS, angle_bins
+
 __all__ = ["MIN_BIN_POINTS", "PROFILE_MODEL_FORMAT", "ProfileModel", "angle_bins"]
 
-PROFILE_MODEL_FORMAT = "xmetro-profile-model/1"
+PROFILE_MODEL_FORMAT = FORMAT
 MIN_BIN_POINTS = 200
-BIN_DEG = 10.0
-N_BINS = 9  # |incidence| 0-90° in 10° bins
 INC_COLUMN = 2  # inc_plane in PROFILE_FEATURES
-
-
-def angle_bins(inc_deg: np.ndarray) -> np.ndarray:
-    """10° bin index (0..8) of |in-plane incidence| (deg); 90° and beyond fall in the last bin."""
-    a = np.abs(np.asarray(inc_deg, dtype=np.float64))
-    return np.clip(np.floor(a / BIN_DEG), 0, N_BINS - 1).astype(np.int64)
 
 
 @dataclass
