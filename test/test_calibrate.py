@@ -120,7 +120,7 @@ def test_a_campaign_error_is_a_clear_exit(tmp_path, capsys):
 
     (tmp_path / "c.yaml").write_text("format: xmetro-campaign/1\nscanner: {id: x}\n")
     assert main(["calibrate", str(tmp_path / "c.yaml"), "--out", str(tmp_path / "o")]) == 2
-    assert "scanner needs an id and a description" in capsys.readouterr().out
+    assert "scanner needs an id and a description" in capsys.readouterr().err
 
 
 def test_calibrate_from_the_virtual_prior(tmp_path, capsys):
@@ -142,11 +142,11 @@ def test_calibrate_from_the_virtual_prior(tmp_path, capsys):
             "--max-points", "400"]
     # the packaged model's compact layout (32 / 64 / 32) is not the micro profile's (16 / 32 / 16)
     assert main([*args, "--out", str(tmp_path / "bad"), "--profile", "micro"]) == 2
-    msg = capsys.readouterr().out
+    msg = capsys.readouterr().err
     assert "network layout differs from the pointnet_multi layout of --profile micro" in msg
     assert "block1 [32] (profile [16])" in msg and not (tmp_path / "bad").exists()
     assert main([*args[:-4], "--families", "catboost", "--prior", "default", "--out", str(tmp_path / "b2")]) == 2
-    assert "--families catboost has none" in capsys.readouterr().out
+    assert "--families catboost has none" in capsys.readouterr().err
     out = tmp_path / "cal"
     assert main([*args, "--out", str(out), "--profile", "quick"]) == 0
     card = ModelSet.load(out / "models" / "pointnet_multi").card

@@ -54,6 +54,15 @@ def test_demo_end_to_end(tmp_path):
         assert section in html
     assert "~/explain failed" not in html and "~/recommend_settings failed" not in html
     assert "re-simulated actual p95" in html
+    # Issue 27: the report shows U, the decisions and the tolerance behind "meets tolerance", and one usable figure,
+    # ScanQuality's own (of the valid points).
+    assert "p95 U x/y/z [µm]" in html and "conforming / non-conforming / undecided" in html
+    assert "meets tolerance (p95 after ≤ 100.0 µm" in html and "ISO 14253-1" in html
+    assert "current settings (the judged scan)" in html and "in the head frame" in html
+    assert "(N - L)_x (eq. 2)" in html  # the SHAP table's glossary, from the feature registry
+    for o in res.outputs:
+        q = o.quality
+        assert f"<td>{q.usable_fraction:.3f}</td>" in html and q.points_flagged <= q.points_valid
     # the recording holds inputs and outputs
     assert (tmp_path / "demo" / "outputs.mcap").stat().st_size > 0
     assert "xmetro_node ready" in (tmp_path / "demo" / "node.log").read_text()

@@ -86,6 +86,7 @@ def test_fleet_predict_identical_to_single_process_and_resumes(client, fleet_dir
     assert res.workers == 2 and len({b["worker_pid"] for b in res.bags}) == 2  # both workers took bags
     assert len(lines) == 5 and all(f"/{len(jobs)}]" in s for s in lines)  # one progress line per bag
     assert not (out / "cellA" / "garbage.mcap").exists()
+    assert not (out / "cellA" / ".partial").exists()  # no empty side directory left by the failed bag
 
     # The single-process path (xmetro predict), into the same file names: the same bytes.
     for name, ref in single.items():
@@ -128,6 +129,10 @@ def test_fleet_predict_identical_to_single_process_and_resumes(client, fleet_dir
         "cellB/day2": "skipped"}
     assert (out / "cellA" / "day1.mcap").stat().st_mtime_ns == mtime
     assert len(pd.read_parquet(res2.summary)) == len(df)
+    # The rerun keeps the damage record of the run that found it (issue 27): still lost data, still reported.
+    trunc = next(b for b in res2.bags if b["name"] == "cellA/truncated")
+    assert trunc["damaged"] and trunc["losses"] == status["cellA/truncated"]["losses"]
+    assert res2.lost_data == 1 and not any(b.get("damaged") for b in res2.bags if b["name"] != "cellA/truncated")
 
 
 def test_fleet_cli(fleet_dir, tmp_path, capsys):
@@ -229,3 +234,25 @@ def test_train_data_from_bags_via_scheduler_address(client, tmp_path):
     for k in ("X", "y", "cloud_id", "oracle", "point_index"):
         assert np.array_equal(getattr(tab, k), getattr(ref, k), equal_nan=True), k
     assert tab.clouds == ref.clouds and m == m_ref and len(tab.clouds) == 3
+
+
+def test_overview_without_time_stamps_and_in_micrometres(tmp_path):
+    """Issue 27: scans with header stamp 0 are no 1970 dates — off the time axis (counted in the tables), or, when
+    no scan has a stamp, plotted in the fleet's order; errors in µm."""
+    from xmetro_ros.apps.fleet_report import write_overview
+
+    def summary(stamps: list[int]) -> Path:
+        n = len(stamps)
+        df = pd.DataFrame({"stamp_ns": stamps, "cell": ["c"] * n, "bag": ["b"] * n, "verdict_name": ["OK"] * n,
+                           **{f"p95_abs_error_{a}": [2.5e-5] * n for a in fleet.AXES}})
+        df["time"] = pd.to_datetime(df["stamp_ns"], unit="ns", utc=True)
+        p = tmp_path / f"s{n}_{stamps[0]}.parquet"
+        df.to_parquet(p, index=False)
+        return p
+
+    t0 = 1_735_689_600_000_000_000  # 2025-01-01
+    html = write_overview(summary([0, 0, t0, t0 + 2_000_000_000]), tmp_path / "a.html").read_text()
+    assert "1970" not in html and "2025-01-01" in html and "2 scans without a time stamp" in html
+    assert "median p95 x (µm)" in html and "<td>25.0</td>" in html
+    html = write_overview(summary([0, 0, 0]), tmp_path / "b.html").read_text()
+    assert "1970" not in html and "no scan has a time stamp" in html

@@ -108,5 +108,5 @@ def test_calibrate_cli_profile_campaign(tmp_path, capsys):
                        ({"border_angle_deg": 95}, "border_angle_deg"), ({"scanner": {}}, "scanner.id")]:
         g = _campaign(tmp_path, **bad)
         assert xmetro(["calibrate", str(g), "--out", str(tmp_path / "bad")]) == 2
-        assert match in capsys.readouterr().out
+        assert match in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()

@@ -12,6 +12,7 @@ from conftest import need_shared
 
 from xmetro_ros.apps.replay import ReplayError, replay_bag
 from xmetro_ros.bag.reader import BagFormatError, BagReader
+from xmetro_ros.msg import ScanQuality
 from xmetro_ros.ros.node_outputs import Tolerance, compare_outputs, read_outputs
 from xmetro_ros.ros.rclpy_util import NodeSpinner
 
@@ -70,10 +71,11 @@ def test_truck_bag_from_cpp_rosbag2_replays_with_defaulted_settings(live_node):
     assert [s.points for s in res.scans] == [80256, 35200, 80256]
     assert res.defaulted == 3
     for s in res.scans:
+        # A street scene in metres (a vehicle's lidar) is no laser line scan: refused whole, with its own code.
         q = s.quality
-        assert q.header.frame_id == "test" and int(q.error_code) == 0
-        assert q.points_valid == s.points
-        assert "defaults used" in q.message
+        assert q.header.frame_id == "test" and int(q.error_code) == ScanQuality.ERROR_NOT_A_LASER_SCAN
+        assert q.verdict == ScanQuality.VERDICT_ERROR and q.settings_defaulted
+        assert "not a laser line scan" in q.message
     summary = res.summary()
     assert "no xmetro_ros/msg/ScannerSettings messages" in summary and "settings DEFAULTED" in summary
 

@@ -45,7 +45,9 @@ def test_process_organized_and_unorganized(handler, scan):
     q = res.quality
     assert q["points_received"] == n and q["points_valid"] == int(valid.sum())
     assert q["flag_counts"] == fl.flag_counts(res.flags)
-    assert q["usable_fraction"] == pytest.approx(np.count_nonzero(res.flags == 0) / n)
+    # Over the valid points, the verdict's figure (issue 27: one definition); flagged ≤ valid.
+    assert q["usable_fraction"] == pytest.approx(np.count_nonzero((res.flags & fl.QUALITY_BITS) == 0) / valid.sum())
+    assert q["points_flagged"] == int(np.count_nonzero(res.flags.reshape(-1)[valid.reshape(-1)])) <= q["points_valid"]
     assert q["verdict_name"] == fl.VERDICT_NAMES[q["verdict"]]
     # the same scan unorganized: same points processed (open3d path), one deviation per point
     pts, fields, _idx = scan.flat()

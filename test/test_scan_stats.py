@@ -78,7 +78,8 @@ def test_summary_of_a_judged_scan_equals_the_old_computation():
     q = res.quality
     assert q["mean_abs_error_mm"] == [float(x) for x in m0] and q["p95_abs_error_mm"] == [float(x) for x in p0]
     assert q["flag_counts"] == fl.flag_counts(res.flags)
-    assert q["points_flagged"] == int(np.count_nonzero(res.flags))
+    # flagged valid points: every invalid point carries a flag (INVALID_POINT / OUT_OF_VOLUME)
+    assert q["points_flagged"] == int(np.count_nonzero(res.flags)) - (q["points_received"] - q["points_valid"])
     # the same numbers through the old entry (pred already reduced to its finite rows)
     U = res.row_uncertainty
     no_u = ~np.isfinite(U).all(axis=1) if U is not None else np.zeros(len(pred), bool)

@@ -22,11 +22,16 @@ if [ ! -x "$VENV/bin/python" ]; then
   "$VENV/bin/pip" install -q --upgrade pip
 fi
 PIP=("$VENV/bin/pip" install -q -c tools/constraints.txt)
+# What each step does, as it starts: a first setup takes about 3 minutes, most of it downloads and the msg build.
+step() { echo "setup: $* ($(date +%H:%M:%S))"; }
 # torch first, from its pinned CPU build, so that no later requirement can pull a CUDA build.
+step "torch 2.13.0 (CPU build)"
 "${PIP[@]}" torch==2.13.0
 # Build requirements of our msg/srv (CMake + rosidl against the ROS 2 wheels), then the package itself without build
 # isolation (reuses them: ~15 s instead of ~45 s).
+step "build requirements (CMake, rosidl, the ROS 2 wheels)"
 "${PIP[@]}" -r tools/build-requirements.txt
+step "xmetro_ros and its msg/srv/action interfaces (editable), with the test, train and fleet extras"
 "${PIP[@]}" --no-build-isolation -e '.[test,train,fleet]'
 "$VENV/bin/python" -c "import xmetro_ros.msg, xmetro_ros.srv, rclpy, open3d, onnxruntime, torch; \
 assert torch.version.cuda is None, 'a CUDA build of torch was installed: CPU only'; \

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -58,11 +59,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                               "campaign", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("campaign", help="campaign file (YAML, format xmetro-campaign/1; see docs/calibration.md)")
     p.add_argument("--out", required=True, help="output directory (models/, report.md, report.json, metrics)")
-    p.add_argument("--profile", choices=sorted(PROFILES), default="quick")
+    p.add_argument("--profile", choices=sorted(PROFILES), default="quick",
+                   help="run profile of the training (quick: minutes; full: the study's protocol)")
     p.add_argument("--families", default=",".join(DEFAULT_FAMILIES),
                    help="comma-separated model families (default: the node's pointnet_multi, which has a spread "
                    "head; catboost gets a constant σ̂)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the scan split and the fits (default 0)")
     p.add_argument("--max-points", type=int, default=2000, help="points sampled per measurement")
     p.add_argument("--prior", default=None, metavar="MODEL_DIR|default",
                    help="warm-start the pointnet_multi network from this model set (a virtual scanner's, or "
@@ -234,6 +236,6 @@ def run(args: argparse.Namespace) -> int:
         calibrate(args.campaign, args.out, profile=args.profile, families=fams, seed=args.seed,
                   max_points=args.max_points, uncertainty=not args.no_uncertainty, prior=args.prior)
     except (CampaignError, ProfileDataError, ValueError, FileNotFoundError) as e:
-        print(f"xmetro calibrate: error: {e}")
+        print(f"xmetro calibrate: error: {e}", file=sys.stderr)
         return 2
     return 0

@@ -8,9 +8,28 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import re
 import sys
 
-__all__ = ["AREAS", "build_parser", "main"]
+__all__ = ["AREAS", "DESCRIPTION", "build_parser", "main", "plain_text"]
+
+#: What ``xmetro --help`` says first: what the tool is for, not how it is built.
+DESCRIPTION = (
+    "xmetro: how wrong a laser line scanner is likely to be, point by point, how sure that is, and why. "
+    "Simulate and train, judge recorded bags offline (predict, report), calibrate a real scanner from recordings of "
+    "certified artifacts, trace residuals on measured data (loop), and run the live node (xmetro_node). "
+    "`xmetro COMMAND --help` describes each command; docs/ has the guides."
+)
+
+_ROLE = re.compile(r":(?:class|mod|func|meth|attr|data|obj):`~?([^`]+)`")
+
+
+def plain_text(doc: str | None) -> str | None:
+    """A docstring as a terminal shows it: Sphinx roles (:class:`~a.b.C`) and double back-quotes dropped."""
+    if doc is None:
+        return None
+    s = _ROLE.sub(lambda m: m.group(1).split(".")[-1] if m.group(0).count("~") else m.group(1), doc)
+    return s.replace("``", "`")
 
 # command → (module that registers it, one-line help shown without importing the module)
 AREAS: dict[str, tuple[str, str]] = {
@@ -36,7 +55,10 @@ AREAS: dict[str, tuple[str, str]] = {
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The ``xmetro`` parser. With ``command``, only that command's area is imported and registered in full;
     the other commands are listed by name and help."""
-    parser = argparse.ArgumentParser(prog="xmetro", description=__doc__)
+    from .. import __version__
+
+    parser = argparse.ArgumentParser(prog="xmetro", description=DESCRIPTION)
+    parser.add_argument("--version", action="version", version=f"xmetro {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     modules = dict.fromkeys(m for m, _ in AREAS.values())  # ordered, unique
     wanted = {AREAS[command][0]} if command in AREAS else set(modules)
@@ -56,7 +78,19 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         if name not in registered:
             available = module in wanted
             sub.add_parser(name, help=help_text if not available else f"(not available: {module} is not installed)")
+    _plain_descriptions(parser)
     return parser
+
+
+def _plain_descriptions(parser: argparse.ArgumentParser) -> None:
+    """Every (sub)command's description and option help without docstring markup (the areas pass ``__doc__``)."""
+    parser.description = plain_text(parser.description)
+    for a in parser._actions:
+        if a.help and a.help is not argparse.SUPPRESS:
+            a.help = plain_text(a.help)
+        if isinstance(a, argparse._SubParsersAction):
+            for sp in a.choices.values():
+                _plain_descriptions(sp)
 
 
 def main(argv: list[str] | None = None) -> int:

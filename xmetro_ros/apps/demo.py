@@ -92,7 +92,7 @@ def _worst_region(outputs: list[Any]) -> dict[str, Any] | None:
         return None
     j = int(np.flatnonzero(ok)[np.argmax(n[ok])])
     return {"scan": best[1], "stamp_ns": o.stamp_ns, "center_m": pts[j] * 1e-3, "max_dev_mm": float(n[j]),
-            "p95_norm_mm": best[0] * 1e3}
+            "p95_norm_mm": best[0] * 1e3, "settings": o.quality.settings}
 
 
 def _ask_services(node_name: str, worst: dict[str, Any], timeout: float) -> tuple[dict, dict]:
@@ -140,7 +140,7 @@ def _ask_services(node_name: str, worst: dict[str, Any], timeout: float) -> tupl
         rq.region_radius = REGION_RADIUS_M
         try:
             r = call_service(rc_cli, rq, timeout=timeout)
-            recommend = _recommend_dict(r, region)
+            recommend = _recommend_dict(r, region, worst.get("settings"))
         except Exception as e:
             recommend = {"error": f"{type(e).__name__}: {e}"}
     return explain, recommend
@@ -152,14 +152,38 @@ def _settings_text(s: Any) -> str:
 
 
 def _quat_deg(q: Any) -> str:
+    """A head rotation relative to the current head pose, as a person reads it: the angle about an axis of the head
+    frame (X along the laser line, Y the scan direction, Z the laser axis), and the same rotation as Rz·Ry·Rx
+    angles (the recommender's own parametrisation, ``scan.geometry.rotation_xyz``)."""
     from ..scan.geometry import quat_to_matrix
 
     r = quat_to_matrix([q.x, q.y, q.z, q.w])
     angle = float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1.0, 1.0))))
-    return f"rotation of {angle:.1f}° (quaternion x={q.x:.3f} y={q.y:.3f} z={q.z:.3f} w={q.w:.3f})"
+    if angle < 0.05:
+        return "keep the current head orientation"
+    axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    n = float(np.linalg.norm(axis))
+    if n < 1e-9:  # 180°: the axis is the eigenvector of eigenvalue 1
+        w, v = np.linalg.eigh((r + r.T) / 2)
+        axis = v[:, int(np.argmax(w))]
+    else:
+        axis = axis / n
+    ry = float(np.degrees(np.arcsin(np.clip(-r[2, 0], -1.0, 1.0))))
+    rx = float(np.degrees(np.arctan2(r[2, 1], r[2, 2])))
+    rz = float(np.degrees(np.arctan2(r[1, 0], r[0, 0])))
+    return (f"turn the head {angle:.1f}° about its axis ({axis[0]:.2f}, {axis[1]:.2f}, {axis[2]:.2f}) in the head "
+            f"frame (X laser line, Y scan direction, Z laser axis) = tilt {rx:.1f}° about X, {ry:.1f}° about Y, "
+            f"turn {rz:.1f}° about Z (applied Z·Y·X) from the current pose")
 
 
-def _recommend_dict(r: Any, region: str) -> dict[str, Any]:
+def _node_tolerance_m() -> float:
+    """The demo node's ``tolerance`` (it runs with the parameter's default), metres."""
+    from ..ros.params import PARAMS
+
+    return float(next(p.default for p in PARAMS if p.name == "tolerance"))
+
+
+def _recommend_dict(r: Any, region: str, current: Any = None) -> dict[str, Any]:
     if not r.success:
         return {"error": r.message}
     um = 1e6
@@ -171,11 +195,14 @@ def _recommend_dict(r: Any, region: str) -> dict[str, Any]:
     rows = [
         ["region", region],
         ["recommended settings", _settings_text(r.recommended_settings)],
+        ["current settings (the judged scan)", _settings_text(current) if current is not None else "unknown"],
         ["recommended head orientation (relative)", _quat_deg(r.recommended_orientation)],
         ["mean |error| before → after [µm]", f"{f(r.mean_abs_error_before)} → {f(r.mean_abs_error_after)}"],
-        ["p95 |error| before → after [µm]", f"{f(r.p95_abs_error_before)} → {f(r.p95_abs_error_after)}"],
+        ["p95 |error| before → after [µm] (systematic + random part at each exposure)",
+         f"{f(r.p95_abs_error_before)} → {f(r.p95_abs_error_after)}"],
         ["coverage before → after", f"{r.coverage_before:.3f} → {r.coverage_after:.3f}"],
-        ["meets tolerance", "yes" if r.meets_tolerance else "no"],
+        [f"meets tolerance (p95 after ≤ {_node_tolerance_m() * um:.1f} µm, the node's `tolerance`)",
+         "yes" if r.meets_tolerance else "no"],
     ]
     alts = [[i + 1, _settings_text(a.settings), _quat_deg(a.orientation), f(a.mean_abs_error),
              f(a.p95_abs_error), f"{a.coverage:.3f}", f(a.score)]
@@ -343,9 +370,7 @@ def _summary_lines(res: DemoResult) -> list[str]:
             q = o.summary_dict()
             vn = ("OK", "WARN", "RESCAN", "ERROR")[q["verdict"]]
             label = res.labels[i] if i < len(res.labels) else f"@{q['stamp_ns'] / 1e9:.0f}s"
-            # usable_fraction is over the received grid cells (holes included); the verdict uses the valid points
-            of_valid = q["usable_fraction"] * q["points_received"] / max(1, q["points_valid"])
-            lines.append(f"  #{i} {label}: {vn:<6s} usable {of_valid:.2f} of valid points, "
+            lines.append(f"  #{i} {label}: {vn:<6s} usable {q['usable_fraction']:.2f} of valid points, "
                          f"p95 |e| x/y/z = " + "/".join(f"{v * 1e3:.1f}" for v in q["p95_abs_error_mm"]) + " µm"
                          + (" (settings defaulted)" if q["settings_defaulted"] else ""))
     if res.worst is not None:
@@ -355,12 +380,13 @@ def _summary_lines(res: DemoResult) -> list[str]:
     if res.explain and "error" not in res.explain:
         ms = np.asarray(res.explain["mean_abs_shap_um"]).sum(axis=1)
         top = np.argsort(-ms)[:3]
-        lines.append("explain (SHAP): top features " + ", ".join(
-            f"{res.explain['feature_names'][i]} ({ms[i]:.2f} µm)" for i in top))
+        lines.append("explain (SHAP): top features by mean |SHAP| summed over x, y, z: " + ", ".join(
+            f"{res.explain['feature_names'][i]} ({ms[i]:.2f} µm)" for i in top)
+            + " (definitions: the report's SHAP table)")
     if res.recommend and "error" not in res.recommend:
         rc = res.recommend
         lines.append(f"recommend: {rc['settings']}; predicted p95 |error| in the region {rc['p95_before']} → "
-                     f"{rc['p95_after']} µm")
+                     f"{rc['p95_after']} µm (systematic + random part at each exposure)")
         if res.resim is not None:
             lines.append(f"re-simulated (virtual scanner, {res.resim['seeds']} seeds): actual p95 |error| "
                          f"{res.resim['before_um']:.2f} → {res.resim['after_um']:.2f} µm")

@@ -65,6 +65,11 @@ class FleetResult:
         return sum(1 for b in self.bags if b["status"] == status)
 
     @property
+    def lost_data(self) -> int:
+        """Bags whose input lost data: damaged in this run, or skipped after a run that found them damaged."""
+        return sum(1 for b in self.bags if b["status"] == "damaged" or b.get("damaged"))
+
+    @property
     def scans(self) -> int:
         return sum(int(b.get("scans", 0)) for b in self.bags if b["status"] in ("done", "damaged"))
 
@@ -140,6 +145,11 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
 
 
+def damage_record(out: str | Path) -> Path:
+    """The file beside a bag's output that records the data its input lost (``<out>.losses.json``)."""
+    return Path(f"{out}.losses.json")
+
+
 def predict_job(job: BagJob, model_dir: str | None = None, params: dict[str, Any] | None = None,
                 topics: list[str] | None = None, deterministic: bool = False) -> dict[str, Any]:
     """Judge one bag (the Dask task): ``predict_bag`` into temporary names, the per-scan rows to Parquet, then
@@ -166,6 +176,11 @@ def predict_job(job: BagJob, model_dir: str | None = None, params: dict[str, Any
             r.update(quality_row(o.quality))
             rows.append(r)
         frame(rows).to_parquet(tmp_scans, index=False)
+        damage = damage_record(out)
+        if res.losses:  # kept beside the outputs: a later run that skips this bag still reports what was lost
+            damage.write_text(json.dumps({"bag": job.bag, "losses": res.losses}, indent=1))
+        else:
+            damage.unlink(missing_ok=True)
         os.replace(tmp_scans, scans)
         os.replace(tmp_out, out)  # last: the .mcap under its final name marks the bag done
         with contextlib.suppress(OSError):
@@ -178,6 +193,8 @@ def predict_job(job: BagJob, model_dir: str | None = None, params: dict[str, Any
         for p in (tmp_out, tmp_scans):
             with contextlib.suppress(OSError):
                 p.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            tmp_out.parent.rmdir()  # no empty .partial/ left behind
         rec.update(status="failed", error=f"{type(e).__name__}: {e}", scans=0)
     rec["wall_s"] = time.monotonic() - t0
     rec["cpu_s"] = time.process_time() - c0  # the worker process's CPU time (all its threads) on this bag
@@ -225,8 +242,14 @@ def run_fleet(jobs: list[BagJob], client: Any, out_dir: str | Path, *, model_dir
     todo = []
     for j in jobs:
         if not redo and j.done():
-            res.bags.append({"bag": j.bag, "name": j.name, "cell": j.cell, "out": j.out, "status": "skipped",
-                             "scans": count_rows(j.scans)})
+            rec = {"bag": j.bag, "name": j.name, "cell": j.cell, "out": j.out, "status": "skipped",
+                   "scans": count_rows(j.scans)}
+            damage = damage_record(j.out)
+            if damage.is_file():  # the run that judged it found the input damaged: still true, still reported
+                with contextlib.suppress(OSError, ValueError):
+                    rec["losses"] = json.loads(damage.read_text()).get("losses", [])
+                    rec["damaged"] = True
+            res.bags.append(rec)
         else:
             todo.append(j)
     if log and len(todo) < len(jobs):
@@ -277,6 +300,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     q.add_argument("--deterministic", action="store_true",
                    help="write processing_latency = 0 so outputs are identical byte for byte run after run")
     q.add_argument("--redo", action="store_true", help="recompute bags whose outputs exist")
+    q.add_argument("--allow-partial", action="store_true",
+                   help="exit 0 when bags lost data (damaged, truncated) but what they held was judged; by default "
+                        "a damaged bag is an error (exit 1), as in xmetro predict")
     q.set_defaults(func=run)
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
 
@@ -292,7 +318,8 @@ def _parse_cells(items: list[str]) -> list[tuple[str, str]]:
 
 
 def run(args: argparse.Namespace) -> int:
-    """``xmetro fleet predict``: exit 0 when every bag is done (or skipped), 1 when any failed or lost data."""
+    """``xmetro fleet predict``: exit 0 when every bag is done (or skipped), 1 when any failed or lost data (lost
+    data in this run or a run before it; ``--allow-partial`` accepts it)."""
     from .predict import PredictError, _parse_params, node_values
 
     try:
@@ -310,10 +337,11 @@ def run(args: argparse.Namespace) -> int:
                         deterministic=args.deterministic, redo=args.redo,
                         log=lambda s: print(s, file=sys.stderr, flush=True))
     for b in res.bags:
-        if b["status"] in ("failed", "damaged"):
-            print(f"{b['status'].upper()}: {b['bag']}: {b.get('error') or '; '.join(b.get('losses') or [])}")
+        if b["status"] in ("failed", "damaged") or b.get("damaged"):
+            what = "DAMAGED (an earlier run)" if b["status"] == "skipped" else b["status"].upper()
+            print(f"{what}: {b['bag']}: {b.get('error') or '; '.join(b.get('losses') or [])}", file=sys.stderr)
     print(f"fleet: {res.count('done')} done, {res.count('skipped')} skipped, {res.count('damaged')} damaged, "
           f"{res.count('failed')} failed; {res.scans} scans in {res.wall_s:.1f} s on {res.workers} worker(s); "
           f"summary {res.summary}, overview {res.overview}")
-    return 1 if res.count("failed") or res.count("damaged") else 0
+    return 1 if res.count("failed") or (res.lost_data and not args.allow_partial) else 0
 

@@ -115,7 +115,9 @@ def write_overview(summary: str | Path, path: str | Path, bags: list[dict[str, A
                    bin_s: float | None = None) -> Path:
     """A self-contained HTML page: per cell, the share of each verdict and the median of the scans' p95 |error|
     per axis over time (bins of ``bin_s`` seconds; default: the fleet's time span / 30), PNGs embedded; then a
-    table per cell and the bags' statuses."""
+    table per cell and the bags' statuses. Errors in µm. Scans without a time stamp (header stamp 0, as some
+    drivers and bags leave it) are counted in the tables but kept off the time axis (a 1970 date is no time); when
+    no scan has one, the axis is the scans' order."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -125,24 +127,34 @@ def write_overview(summary: str | Path, path: str | Path, bags: list[dict[str, A
     from .report_html import _COLOURS, _e, _png, _table
 
     df = pd.read_parquet(summary)
-    span = float((df["stamp_ns"].max() - df["stamp_ns"].min()) / 1e9) if len(df) else 0.0
-    bin_s = float(bin_s or max(span / 30.0, 1.0))
-    t_min = int(df["stamp_ns"].min())
-    df["bin"] = ((df["stamp_ns"] - t_min) // int(bin_s * 1e9)).astype(int)
-    df["bin_time"] = pd.to_datetime(t_min + df["bin"] * int(bin_s * 1e9), unit="ns", utc=True)
+    stamped = df["stamp_ns"] > 0
+    n_unstamped = int((~stamped).sum())
+    by_order = not stamped.any()
+    if by_order:  # no time at all: the scans' order is the axis (one bin per scan)
+        df["bin"] = np.arange(len(df))
+        df["bin_time"] = df["bin"]
+        bin_s = 1.0
+    else:
+        st = df.loc[stamped, "stamp_ns"]
+        span = float((st.max() - st.min()) / 1e9)
+        bin_s = float(bin_s or max(span / 30.0, 1.0))
+        t_min = int(st.min())
+        df["bin"] = ((df["stamp_ns"] - t_min) // int(bin_s * 1e9)).astype(int)
+        df["bin_time"] = pd.to_datetime(t_min + df["bin"] * int(bin_s * 1e9), unit="ns", utc=True)
+    timed = df if by_order else df[stamped]
     verdicts = [v for v in _COLOURS if v in set(df["verdict_name"])]
     cells = sorted(df["cell"].unique())
     p95_cols = [c for c in (f"p95_abs_error_{a}" for a in AXES) if c in df]
 
     fig, axes = plt.subplots(len(cells), 2, figsize=(11, 2.6 * len(cells)), squeeze=False)
     for r, cell in enumerate(cells):
-        d = df[df["cell"] == cell]
+        d = timed[timed["cell"] == cell]
         share = pd.crosstab(d["bin_time"], d["verdict_name"], normalize="index").reindex(columns=verdicts,
                                                                                           fill_value=0.0)
         ax = axes[r][0]
         bottom = np.zeros(len(share))
-        x = share.index.to_pydatetime()
-        width = bin_s / 86400.0 * 0.9  # days, matplotlib's date unit
+        x = share.index.to_numpy() if by_order else share.index.to_pydatetime()
+        width = 0.9 if by_order else bin_s / 86400.0 * 0.9  # days, matplotlib's date unit
         for v in verdicts:
             ax.bar(x, share[v].to_numpy(), width=width, bottom=bottom, color=_COLOURS[v], label=v)
             bottom += share[v].to_numpy()
@@ -151,14 +163,17 @@ def write_overview(summary: str | Path, path: str | Path, bags: list[dict[str, A
         ax = axes[r][1]
         ok = d[d["verdict_name"] != "ERROR"]
         for c, a in zip(p95_cols, AXES, strict=False):
-            med = ok.groupby("bin_time")[c].median() * 1e3  # m → mm
-            ax.plot(med.index.to_pydatetime(), med.to_numpy(), marker="o", ms=3, label=a)
-        ax.set_ylabel("median p95 |error| (mm)")
+            med = ok.groupby("bin_time")[c].median() * 1e6  # m → µm
+            ax.plot(med.index.to_numpy() if by_order else med.index.to_pydatetime(), med.to_numpy(), marker="o",
+                    ms=3, label=a)
+        ax.set_ylabel("median p95 |error| (µm)")
         if r == 0:
             axes[r][0].legend(fontsize=7, ncol=len(verdicts))
             ax.legend(fontsize=7, title="axis")
         for ax in axes[r]:
             ax.tick_params(axis="x", labelrotation=30, labelsize=7)
+            if by_order:
+                ax.set_xlabel("scan (order in the fleet; no time stamps)")
     fig.tight_layout()
     trend = _png(fig)
 
@@ -169,9 +184,15 @@ def write_overview(summary: str | Path, path: str | Path, bags: list[dict[str, A
         counts = d["verdict_name"].value_counts()
         ok = d[d["verdict_name"] != "ERROR"]
         rows.append([cell, d["bag"].nunique(), n, *(f"{100.0 * counts.get(v, 0) / n:.1f}" for v in verdicts),
-                     *(f"{ok[c].median() * 1e3:.4f}" if len(ok) else "" for c in p95_cols)])
-    header = ["cell", "bags", "scans", *(f"{v} %" for v in verdicts), *(f"median p95 {a} (mm)" for a in AXES[:len(
+                     *(f"{ok[c].median() * 1e6:.1f}" if len(ok) else "" for c in p95_cols)])
+    header = ["cell", "bags", "scans", *(f"{v} %" for v in verdicts), *(f"median p95 {a} (µm)" for a in AXES[:len(
         p95_cols)])]
+    if by_order:
+        when = "no scan has a time stamp (header stamp 0): plotted in the order of the fleet"
+    else:
+        when = (f"{_e(str(timed['time'].min()))} to {_e(str(timed['time'].max()))}; time bins of {bin_s:g} s"
+                + (f"; {n_unstamped} scans without a time stamp (header stamp 0) are in the tables, not on the time "
+                   "axis" if n_unstamped else ""))
     bag_rows = [[b["name"], b.get("cell", ""), b["status"], b.get("scans", ""),
                  b.get("error") or "; ".join(b.get("losses") or [])] for b in (bags or [])]
     html = (
@@ -179,7 +200,7 @@ def write_overview(summary: str | Path, path: str | Path, bags: list[dict[str, A
         "body{font-family:sans-serif;margin:1.5em}table{border-collapse:collapse;font-size:13px}"
         "td,th{border:1px solid #ccc;padding:3px 8px}</style></head><body>"
         f"<h1>Fleet overview</h1><p>{len(df)} scans from {df['bag'].nunique()} bags, {len(cells)} cells; "
-        f"{_e(str(df['time'].min()))} to {_e(str(df['time'].max()))}; time bins of {bin_s:g} s. "
+        f"{when}. "
         f"Errors are the model's predicted per-scan p95 |error| (ERROR scans excluded).</p>"
         f"<h2>Verdicts and error per cell over time</h2><img alt='trend' src='data:image/png;base64,{trend}'/>"
         f"<h2>Per cell</h2>{_table(header, rows)}"

@@ -21,13 +21,17 @@ def register(subparsers) -> None:
     p.add_argument("--out", required=True, help="output directory (report.json, report.md, plots, model/)")
     p.add_argument("--model", default=None, help="model dir (ModelSet); default: retrain CatBoost on the input")
     p.add_argument("--candidates", default=None, help="comma-separated candidate names (default: all)")
-    p.add_argument("--correction", default="auto", choices=["auto", "feature", "offset"])
-    p.add_argument("--max-iter", type=int, default=3)
-    p.add_argument("--n-perm", type=int, default=199)
-    p.add_argument("--alpha", type=float, default=0.01)
-    p.add_argument("--min-effect", type=float, default=0.05)
+    p.add_argument("--correction", default="auto", choices=["auto", "feature", "offset"],
+                   help="auto: identities become per-identity offsets, other variables features; feature / offset: "
+                   "only that kind (default auto)")
+    p.add_argument("--max-iter", type=int, default=3, help="at most this many effects added (default 3)")
+    p.add_argument("--n-perm", type=int, default=199, help="permutations of each candidate's null (default 199)")
+    p.add_argument("--alpha", type=float, default=0.01, help="family-wise level of the Holm-corrected tests "
+                   "(default 0.01)")
+    p.add_argument("--min-effect", type=float, default=0.05,
+                   help="smallest share of the residual's variance an identity must explain (default 0.05)")
     p.add_argument("--iterations", type=int, default=300, help="boosting iterations of the retrained family")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the role draw, the model and the trace (default 0)")
     p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
                    help="prepare the inputs (read, pre-process, features, targets) on this Dask cluster")
     p.add_argument("--workers", type=int, default=None,

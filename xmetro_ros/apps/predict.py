@@ -60,10 +60,10 @@ class PredictResult:
         for i, (o, topic) in enumerate(zip(self.outputs, self.inputs, strict=True)):
             q = o.quality
             err = f" error_code={int(q.error_code)}" if int(q.error_code) else ""
-            mae = ", ".join(f"{v * 1e3:.4f}" for v in q.mean_abs_error)
+            mae = ", ".join(f"{v * 1e6:.1f}" for v in q.mean_abs_error)  # m on the topic, µm for a reader
             lines.append(f"#{i:<3d} {topic:<20s} stamp={o.stamp_ns / 1e9:.3f}s points={q.points_received} -> "
                          f"{verdict_name(int(q.verdict))}{err} valid={q.points_valid} "
-                         f"usable={q.usable_fraction:.3f} mean|e|(x,y,z)=({mae}) mm"
+                         f"usable={q.usable_fraction:.3f} mean|e|(x,y,z)=({mae}) µm"
                          + (" settings DEFAULTED" if q.settings_defaulted else "")
                          + (f" — {q.message}" if q.message else ""))
         lines += [f"note: {n}" for n in self.notes]
@@ -254,6 +254,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--model", default=None, metavar="DIR", help="model directory (default: the shipped model)")
     p.add_argument("--topic", action="append", help="PointCloud2 topic to judge (repeatable; default: all inputs)")
     p.add_argument("--param", action="append", metavar="NAME=VALUE", help="node parameter override (repeatable)")
+    p.add_argument("--allow-partial", action="store_true",
+                   help="exit 0 when the bag lost data (truncated, damaged chunks) and what it held was judged; by "
+                        "default a damaged bag is an error (exit 1; the output still holds every readable scan)")
     p.add_argument("--deterministic", action="store_true",
                    help="processing_latency written as 0 and CDR padding zeroed: identical bytes run after run")
     p.add_argument("--cad", default=None, metavar="PART.stl",
@@ -268,14 +271,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """``xmetro predict``: judge the bag offline and print the summary; returns the exit code."""
+    from tqdm import tqdm
+
     from ..bag.reader import BagFormatError
 
-    try:
-        res = predict_bag(args.bag, args.out, model_dir=args.model, params=_parse_params(args.param),
-                          topics=args.topic, deterministic=getattr(args, "deterministic", False))
-    except (PredictError, BagFormatError, OSError) as e:
-        print(f"xmetro predict: error: {e}", file=sys.stderr)
-        return 1
+    # Progress on a terminal only (a log file or a pipe gets the summary alone).
+    with tqdm(desc="xmetro predict", unit="scan", file=sys.stderr, disable=not sys.stderr.isatty(),
+              leave=False) as bar:
+        try:
+            res = predict_bag(args.bag, args.out, model_dir=args.model, params=_parse_params(args.param),
+                              topics=args.topic, deterministic=getattr(args, "deterministic", False),
+                              log=lambda _line: bar.update(1))
+        except (PredictError, BagFormatError, OSError) as e:
+            print(f"xmetro predict: error: {e}", file=sys.stderr)
+            return 1
     print(res.summary())
     if getattr(args, "cad", None):
         from .predict_cad import cad_reports, parse_pose, summary_lines
@@ -287,4 +296,16 @@ def run(args: argparse.Namespace) -> int:
             print(f"xmetro predict: --cad: error: {e}", file=sys.stderr)
             return 1
         print("\n".join(summary_lines(rows)))
+    from ..msg import ScanQuality
+
+    foreign = [i for i, o in enumerate(res.outputs) if int(o.quality.error_code) == ScanQuality.ERROR_NOT_A_LASER_SCAN]
+    if foreign:
+        print(f"xmetro predict: error: {len(foreign)} of {len(res.outputs)} scans are not laser line scans of this "
+              f"scanner (ERROR_NOT_A_LASER_SCAN, scans {', '.join(f'#{i}' for i in foreign[:8])}"
+              f"{' ...' if len(foreign) > 8 else ''}): {res.outputs[foreign[0]].quality.message}", file=sys.stderr)
+        return 1
+    if res.losses and not getattr(args, "allow_partial", False):
+        print(f"xmetro predict: error: the bag lost data ({len(res.losses)} LOSS line(s) above); {args.out} holds "
+              "every scan that could be read. --allow-partial accepts a partial bag (exit 0).", file=sys.stderr)
+        return 1
     return 0

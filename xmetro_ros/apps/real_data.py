@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -56,7 +57,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "atc5_profiler_sphere_r40; 'none' to skip)")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--iterations", type=int, default=1000, help="CatBoost iterations of d")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the segmentation, folds and fits (default 0)")
     p.set_defaults(func=run)
 
 
@@ -328,7 +329,8 @@ def run(args: argparse.Namespace) -> int:
     data = Path(args.data) if args.data else default_data_dir("profiler_sphere_r19_labelled")
     out = Path(args.out)
     if not (data / "train_file.txt").is_file() or not (data / "val_file.txt").is_file():
-        print(f"xmetro real-data: error: {data} holds no train_file.txt / val_file.txt (the labelled profile set)")
+        print(f"xmetro real-data: error: {data} holds no train_file.txt / val_file.txt (the labelled profile set)",
+              file=sys.stderr)
         return 2
     try:
         camp = _write_campaign(out, data)
@@ -348,7 +350,7 @@ def run(args: argparse.Namespace) -> int:
         (out / "tables.md").write_text(_tables(ev, atc5))
         _plots(out, ev)
     except (CampaignError, ProfileDataError, MeasuredDataError, ValueError) as e:
-        print(f"xmetro real-data: error: {e}")
+        print(f"xmetro real-data: error: {e}", file=sys.stderr)
         return 2
     s = ev["systematic"]
     c = ev["coverage_kept"]

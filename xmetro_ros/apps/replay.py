@@ -77,12 +77,12 @@ class ScanOutcome:
         q = self.quality
         if q is None:
             return f"{head} -> NO QUALITY RECEIVED"
-        mae = ", ".join(f"{v * 1e3:.4f}" for v in q.mean_abs_error)
+        mae = ", ".join(f"{v * 1e6:.1f}" for v in q.mean_abs_error)  # m on the topic, µm for a reader
         dflt = " settings DEFAULTED" if q.settings_defaulted else ""
         err = f" error_code={int(q.error_code)}" if int(q.error_code) else ""
         msg = f" — {q.message}" if q.message else ""
         return (f"{head} -> {self.verdict}{err} valid={q.points_valid} usable={q.usable_fraction:.3f} "
-                f"mean|e|(x,y,z)=({mae}) mm{dflt}{msg}")
+                f"mean|e|(x,y,z)=({mae}) µm{dflt}{msg}")
 
 
 @dataclass

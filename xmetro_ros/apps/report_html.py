@@ -107,6 +107,20 @@ def shap_bar_png(feature_names: list[str], mean_abs_shap_um: np.ndarray, axis_na
     return _png(fig)
 
 
+def feature_glossary(names: list[str]) -> dict[str, str]:
+    """Feature name → its definition from the feature registry (the study's equations), for readers of a report;
+    a name the registry does not know (a model of other features) maps to ''."""
+    from ..judge.features import REGISTRY
+
+    out = {}
+    for n in names:
+        try:
+            out[n] = REGISTRY.get(n).formula
+        except KeyError:
+            out[n] = ""
+    return out
+
+
 def _e(x: Any) -> str:
     return html.escape(str(x))
 
@@ -159,11 +173,23 @@ def write_report(
             q["points_flagged"], f"{q['usable_fraction']:.3f}",
             " / ".join(f"{v * 1e3:.2f}" for v in q["mean_abs_error_mm"]),
             " / ".join(f"{v * 1e3:.2f}" for v in q["p95_abs_error_mm"]),
+            " / ".join("-" if not np.isfinite(v) else f"{v * 1e3:.2f}" for v in q.get("p95_uncertainty_mm",
+                                                                                         [np.nan] * 3)),
+            _e(" / ".join(str(v) for v in q.get("decisions", {}).values()) or "-"),
             "yes" if q["settings_defaulted"] else "no", _e(flags), _e(q["message"]),
         ])
-    parts.append(_table(["#", "scan", "verdict", "error", "received", "valid", "flagged", "usable",
-                         "mean |e| x/y/z [µm]", "p95 |e| x/y/z [µm]", "defaulted", "flag counts", "message"],
-                        rows, raw_cols=frozenset({1, 2, 11, 12})))
+    parts.append(_table(["#", "scan", "verdict", "error", "received", "valid", "flagged (of valid)",
+                         "usable (of valid)",
+                         "mean |e| x/y/z [µm]", "p95 |e| x/y/z [µm]", "p95 U x/y/z [µm]",
+                         "conforming / non-conforming / undecided", "defaulted", "flag counts", "message"],
+                        rows, raw_cols=frozenset({1, 2, 11, 13, 14})))
+    rules = sorted({str(s.quality.get("decision_rule", "")) for s in scans} - {""})
+    parts.append("<p>U: the expanded (95 %) uncertainty of each point's predicted deviation, per axis, calibrated "
+                 "per incidence and exposure (docs/learning.md). Decisions per ISO 14253-1"
+                 + (f" ({_e(', '.join(rules))} rule)" if rules else "")
+                 + " against the node's <code>tolerance</code>: conforming and non-conforming are proved with U, "
+                 "undecided are neither. Valid: finite points inside the working volume; usable and flagged are "
+                 "shares and counts of the valid points (the verdict's figures).</p>")
 
     parts.append("<h2>Deviation maps</h2><p>Top view (x, y) of each processed scan in its frame, coloured by the "
                  "norm of the predicted deviation (nominal − measured, as the node publishes it) and, for "
@@ -205,9 +231,12 @@ def write_report(
         parts.append(f"<img alt='shap' src='data:image/png;base64,"
                      f"{shap_bar_png(explain['feature_names'], ms, explain['axis_names'])}'/>")
         order = np.argsort(-ms.sum(axis=1))
-        parts.append(_table(["feature", "unit", *[f"mean |SHAP| {a} [µm]" for a in explain["axis_names"]]],
-                            [[explain["feature_names"][i], explain["feature_units"][i],
-                              *[f"{v:.3f}" for v in ms[i]]] for i in order]))
+        meaning = feature_glossary(explain["feature_names"])
+        parts.append(_table(["feature", "what it is", "unit", *[f"mean |SHAP| {a} [µm]" for a in explain["axis_names"]],
+                             "sum over axes [µm]"],
+                            [[explain["feature_names"][i], _e(meaning.get(explain["feature_names"][i], "")),
+                              explain["feature_units"][i], *[f"{v:.3f}" for v in ms[i]], f"{ms[i].sum():.3f}"]
+                             for i in order], raw_cols=frozenset({1})))
 
     parts.append("<h2>How to rescan it? (~/recommend_settings)</h2>")
     if not recommend:

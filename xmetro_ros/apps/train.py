@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import sys
 import tempfile
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +26,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="output directory (metrics.json, tables.md, PNGs, models/)")
     p.add_argument("--data", default=None, help="directory (or file) of simulated scans (.mcap from `xmetro "
                    "simulate`); default: simulate the profile's campaign with --seed")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the campaign, the splits and the fits (default 0)")
     p.add_argument("--families", default=",".join(FAMILIES), help=f"comma-separated subset of {','.join(FAMILIES)}")
     p.add_argument("--threads", type=int, default=1, help="threads per fit (torch, BLAS, CatBoost)")
     p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
@@ -34,8 +36,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run_train)
 
     e = subparsers.add_parser("export-default", help="train (or copy) the default model set shipped in the package")
-    e.add_argument("--seed", type=int, default=0)
-    e.add_argument("--profile", choices=sorted(PROFILES), default="full")
+    e.add_argument("--seed", type=int, default=0, help="seed of the campaign, the splits and the fits (default 0)")
+    e.add_argument("--profile", choices=sorted(PROFILES), default="full",
+                   help="run profile of the training (default full: the study's protocol)")
     e.add_argument("--from", dest="from_dir", default=None,
                    help=f"copy <DIR>/models/{DEFAULT_FAMILY} of a finished `xmetro train` run instead of training")
     dest = e.add_mutually_exclusive_group(required=True)
@@ -58,8 +61,28 @@ def _families(text: str) -> tuple[str, ...]:
     return fams
 
 
+def warning_summary(records: list[warnings.WarningMessage]) -> list[str]:
+    """One line per kind of warning the training libraries raised (category, count, first message), instead of
+    one line per fit: an MLP that stops at max_iter warns in every fold of every search candidate."""
+    kinds: dict[tuple[str, str], list[str]] = {}
+    for w in records:
+        first = str(w.message).splitlines()[0] if str(w.message) else ""
+        kinds.setdefault((w.category.__name__, first[:160]), []).append(w.filename)
+    return [f"{cat} x{len(v)}: {msg}" for (cat, msg), v in sorted(kinds.items(), key=lambda kv: -len(kv[1]))]
+
+
 def run_train(args: argparse.Namespace) -> int:
-    """``xmetro train``: load or simulate the data, run the study, write its results; returns the exit code."""
+    """``xmetro train``: load or simulate the data, run the study, write its results; returns the exit code.
+    Warnings of the training libraries are collected and printed once per kind at the end (stderr)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        rc = _run_train(args)
+    for line in warning_summary(list(caught)):
+        print(f"xmetro train: warning: {line}", file=sys.stderr)
+    return rc
+
+
+def _run_train(args: argparse.Namespace) -> int:
     from ..learn.study import load_data, run_study
 
     try:
@@ -72,7 +95,7 @@ def run_train(args: argparse.Namespace) -> int:
         metrics = run_study(table, manifest, args.profile, args.seed, args.out, families=fams,
                             threads=args.threads, card_extra={"scanner": _scanner_card()})
     except (ValueError, FileNotFoundError) as e:
-        print(f"xmetro train: error: {e}")
+        print(f"xmetro train: error: {e}", file=sys.stderr)
         return 2
     print(f"wrote {Path(args.out) / 'metrics.json'} and {Path(args.out) / 'tables.md'} "
           f"({metrics['timings_s']['total']:.0f} s)")

@@ -1,7 +1,7 @@
 """The calibration campaign file (YAML, ``format: xmetro-campaign/1``): which scanner, which certified artifacts,
 and for each recording which artifact each scan shows and where it sits. Lengths in mm, in the scan frame.
 
-Schema (docs/calibration.md gives a full example)::
+Schema (a complete file: config/campaigns/demo_campaign.yaml)::
 
     format: xmetro-campaign/1
     scanner:

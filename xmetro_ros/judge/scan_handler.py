@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from ..scan.geometry import HeadPose
 from ..scan.scan import Scan
 from ..scan.scanner import ScannerModel, SettingsError
 from . import flags as fl
@@ -43,6 +44,48 @@ __all__ = [
 
 # Below this many valid points outlier removal / normals are meaningless.
 _MIN_POINTS_TO_PROCESS = 10
+
+
+#: A point farther from the laser source than this many times the far end of the scanner's measuring range (or
+#: nearer than its near end divided by it) cannot have been measured by it. Wide on purpose: a real scan sits inside
+#: the range, up to a few spurious returns.
+FOREIGN_RANGE_FACTOR = 10.0
+#: A scan with at least this share of such points is another sensor's cloud (a street scene in metres), or
+#: coordinates off by a factor 1000: refused whole. (Drivers that write no-returns as (0, 0, 0) leave many points
+#: at the frame origin, inside the range: the share, not the median, has to decide.)
+FOREIGN_FRACTION = 0.10
+#: Points the check looks at, at most (an even subsample): its cost follows the data, never the cloud's size.
+FOREIGN_CHECK_POINTS = 4096
+
+
+def foreign_scan_reason(points: np.ndarray, pose: HeadPose | None, scanner: ScannerModel) -> str:
+    """Why the finite ``points`` (N, 3) mm cannot be a scan of ``scanner`` from ``pose`` ('' when they can).
+
+    The distance of a point from the laser source in the laser plane (``point_geometry``'s source distance: the
+    head's motion along the scan direction does not change it) is what a laser line scanner measures; its median
+    over the scan must lie within the measuring range widened ``FOREIGN_RANGE_FACTOR`` times for all but
+    ``FOREIGN_FRACTION`` of the points. Without a pose the study's set-up (looking down from the reference
+    stand-off) is assumed, as for defaulted settings."""
+    from ..scan.geometry import point_geometry
+
+    p = np.asarray(points, dtype=np.float64)
+    if len(p) == 0:
+        return ""
+    step = max(1, len(p) // FOREIGN_CHECK_POINTS)
+    head = pose if pose is not None else HeadPose.looking_down(scanner.standoff_mm)
+    dist = np.asarray(point_geometry(p[::step], head, scanner.camera_mm).source_distance, dtype=np.float64)
+    near, far = (float(v) for v in scanner.depth_of_field_mm)
+    hi, lo = FOREIGN_RANGE_FACTOR * far, near / FOREIGN_RANGE_FACTOR
+    out = (dist > hi) | (dist < lo)
+    share = float(out.mean())
+    if share < FOREIGN_FRACTION:
+        return ""
+    med = float(np.median(dist[out]))
+    hint = " (coordinates in mm published as metres?)" if med > 100.0 * far else ""
+    return (f"not a laser line scan of this scanner: {100 * share:.0f} % of its points lie outside {lo:g} mm to "
+            f"{hi / 1000.0:g} m from the laser source (median {med / 1000.0:.3g} m), where it measures "
+            f"{near:g}-{far:g} mm{hint}; another sensor's cloud, wrong units or a wrong head pose. Nothing is "
+            "predicted for it.")
 
 
 class ScanError(ValueError):
@@ -322,6 +365,9 @@ class ScanHandler:
         if missing:
             raise ScanError("MISSING_INPUT_FIELD", f"the model needs per-point field(s) {', '.join(missing)} "
                                                    f"that the cloud lacks (has: {', '.join(sorted(scan.fields))})")
+        foreign = foreign_scan_reason(scan.points.reshape(-1, 3)[valid.reshape(-1)], scan.pose, self.scanner)
+        if foreign:
+            raise ScanError("NOT_A_LASER_SCAN", foreign)
 
         check_deadline(deadline, "pre-processing")
         try:
@@ -429,9 +475,11 @@ class ScanHandler:
         / ``percentile(95, axis=0)`` (tested)."""
         from .scan_stats import abs_error_stats, flag_tally
 
-        n_flagged, counts = flag_tally(flags, fl.FLAG_BITS)
-        # Usable = valid and without a quality bit; the verdict fractions are over valid points (not the empty
-        # grid cells). Decision bits do not make a point unusable (flags module docstring).
+        n_flagged_all, counts = flag_tally(flags, fl.FLAG_BITS)
+        # One definition of each figure, the verdict's: over the VALID points (not the empty grid cells, which all
+        # carry INVALID_POINT or OUT_OF_VOLUME and are counted in flag_counts). Usable = valid and without a quality
+        # bit; decision bits do not make a point unusable (flags module docstring). Flagged = valid with any flag.
+        n_flagged = n_flagged_all - (n_received - n_valid)
         n_quality = int(np.count_nonzero(np.asarray(flags) & fl.QUALITY_BITS))
         n_usable = n_received - n_quality
         dec_counts = (np.bincount(np.asarray(decisions, dtype=np.int64), minlength=3)[:3] if decisions is not None
@@ -468,7 +516,7 @@ class ScanHandler:
             "decision_rule": self.params.decision_rule,
             "decision_names": list(fl.DECISION_NAMES),
             "decision_counts": [int(c) for c in dec_counts],
-            "usable_fraction": n_usable / n_received if n_received else 0.0,
+            "usable_fraction": n_usable / n_valid if n_valid else 0.0,
             "settings_defaulted": bool(settings_defaulted),
             "decimated": bool(decimated),
             "model_id": getattr(self.model, "id", "") if model_id is None else model_id,

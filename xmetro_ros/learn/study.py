@@ -216,8 +216,11 @@ def run_study(
             sm["models"][fam] = per_axis
             dt = time.perf_counter() - t0
             metrics["timings_s"][f"{split_name}/{fam}"] = round(dt, 1)
+            def _ratio(r: float | None) -> str:  # real recordings have no oracle: say nothing rather than "xnan"
+                return f" (x{r:.2f} oracle)" if r is not None and np.isfinite(r) else ""
+
             log(f"[{split_name}] {fam}: " + ", ".join(
-                f"{ax} MAE {v['mae']['mean']:.4f} mm (x{v['ratio_to_oracle'] or float('nan'):.2f} oracle)"
+                f"{ax} MAE {1000 * v['mae']['mean']:.1f} µm{_ratio(v['ratio_to_oracle'])}"
                 for ax, v in per_axis.items()) + f"  ({dt:.0f} s)")
             if split_name == "point":
                 point_models[fam] = fitted

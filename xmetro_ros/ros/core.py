@@ -312,7 +312,13 @@ class XmetroCore:
             scanner_id=self.scanner.id, model_id=res.model_id, uncertainty=res.row_uncertainty, cad_pose=cad_pose))
         q.processing_latency = time.monotonic() - t0
         qd = res.quality
-        return CoreOutput(q, dev_cloud, corrected, f"scan {stamp_ns}: {qd['verdict_name']} ({qd['message']})",
+        # A line a person reads: the scan by its time (s) and frame, its errors and U in µm (SI stays on the topics).
+        p95 = "/".join(f"{v * 1e3:.1f}" for v in qd["p95_abs_error_mm"])
+        u95 = "/".join("-" if not np.isfinite(v) else f"{v * 1e3:.1f}" for v in qd["p95_uncertainty_mm"])
+        line = (f"scan at {stamp_ns / 1e9:.3f} s ({msg.header.frame_id or 'no frame'}): {qd['verdict_name']} "
+                f"({qd['message']}); usable {qd['usable_fraction']:.2f} of {qd['points_valid']} valid points, p95 "
+                f"|d| x/y/z {p95} µm, p95 U {u95} µm")
+        return CoreOutput(q, dev_cloud, corrected, line,
                           cad=cad_msg, cad_error=cad_error, cad_log=cad_log)
 
     def _cad_map(self, msg: PointCloud2, points_m: np.ndarray, res: Any

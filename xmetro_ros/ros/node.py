@@ -343,6 +343,30 @@ def main(args: list[str] | None = None) -> int:
     return run_node(XmetroNode, args)
 
 
+def node_help(prog: str) -> str:
+    """``xmetro_node --help``: how to start it and every parameter (name, default, unit, meaning)."""
+    import os
+    import textwrap
+
+    from .params import PARAMS
+
+    lines = [f"usage: {os.path.basename(prog)} [--localhost-only] [--ros-args -p NAME:=VALUE ... "
+             "--params-file FILE]", ""]
+    lines += textwrap.wrap(
+        "The xmetro node: judges the organized scans it receives (sensor_msgs/PointCloud2 + ScannerSettings), "
+        "publishes per-point deviations, their 95 % uncertainty, flags and a verdict; services ~/explain, "
+        "~/recommend_settings, ~/reference. The DDS environment is the caller's; --localhost-only (or "
+        "XMETRO_LOCALHOST_ONLY=1) keeps it on this machine. docs/node.md describes topics, services and flags.",
+        100)
+    lines += ["", "parameters:"]
+    for p in PARAMS:
+        unit = f" [{p.unit}]" if p.unit and p.unit != "path" else ""
+        ro = " (read-only)" if p.read_only else ""
+        lines += textwrap.wrap(f"{p.name} = {p.default!r}{unit}{ro}: {p.meaning}", 100, initial_indent="  ",
+                               subsequent_indent="      ")
+    return "\n".join(lines)
+
+
 def run_node(factory: Any, args: list[str] | None = None) -> int:
     """Start rclpy, build ``factory()`` and spin it on a multi-threaded executor until interrupted."""
     import sys
@@ -352,6 +376,10 @@ def run_node(factory: Any, args: list[str] | None = None) -> int:
     from .dds_env import apply_requested_ros_env, pop_localhost_flag
 
     argv, flag = pop_localhost_flag(list(sys.argv if args is None else args))
+    own = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
+    if "-h" in own or "--help" in own:  # help, not a node: nothing touches DDS
+        print(node_help(argv[0] if argv else "xmetro_node"))
+        return 0
     apply_requested_ros_env(flag)
     _limit_malloc_arenas()
     rclpy.init(args=argv)

@@ -154,6 +154,11 @@ class OutputSet:
             "p95_abs_error_mm": m_to_mm(np.asarray(q.p95_abs_error, dtype=float)).tolist(),
             "usable_fraction": float(q.usable_fraction),
             "settings_defaulted": bool(q.settings_defaulted),
+            "mean_uncertainty_mm": m_to_mm(np.asarray(q.mean_uncertainty, dtype=float)).tolist(),
+            "p95_uncertainty_mm": m_to_mm(np.asarray(q.p95_uncertainty, dtype=float)).tolist(),
+            "decision_rule": str(q.decision_rule),
+            "decisions": {"conforming": int(q.points_conforming), "non_conforming": int(q.points_non_conforming),
+                          "undecided": int(q.points_undecided)},
         }
 
 
