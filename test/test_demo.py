@@ -47,8 +47,9 @@ def test_demo_end_to_end(tmp_path):
     assert inside.sum() > 50 and abs(res.resim["before_um"] / own - 1) < 0.3, (res.resim, own)
     html = res.report.read_text()
     assert res.report == tmp_path / "demo" / "report.html"
-    # quality table (4 scans), 4 deviation maps + the SHAP chart, embedded as base64 PNG
-    assert len(re.findall(r"data:image/png;base64,iVBORw0KGgo", html)) == 5
+    # quality table (4 scans), 4 deviation maps, 4 U maps + the SHAP chart, embedded as base64 PNG
+    assert len(re.findall(r"data:image/png;base64,iVBORw0KGgo", html)) == 9
+    assert len(re.findall(r"alt='uncertainty map \d'", html)) == 4
     assert html.count("<span class='v'") == 4
     for section in ("Per-scan quality", "Deviation maps", "~/explain", "~/recommend_settings"):
         assert section in html

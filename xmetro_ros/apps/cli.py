@@ -40,6 +40,7 @@ AREAS: dict[str, tuple[str, str]] = {
     "bag": ("xmetro_ros.apps.record", "bag tools (recover a killed recording)"),
     "replay": ("xmetro_ros.apps.replay", "replay a bag's scans and settings into a running xmetro_node"),
     "predict": ("xmetro_ros.apps.predict", "judge a bag's scans offline, as the live node would"),
+    "report": ("xmetro_ros.apps.report", "write the HTML report of a judged bag (node or predict output)"),
     "demo": ("xmetro_ros.apps.demo", "start a node, replay bags/demo.mcap, write out/demo/report.html"),
     "fleet": ("xmetro_ros.apps.fleet", "re-judge many bags on Dask (local processes or a cluster)"),
     "loop": ("xmetro_ros.apps.loop", "trace the residual of the model to an undeclared effect and add it"),

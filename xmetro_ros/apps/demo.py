@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["DemoResult", "default_demo_bag", "register", "run", "run_demo"]
+__all__ = ["DemoResult", "default_demo_bag", "input_scans", "register", "report_scans", "run", "run_demo"]
 
 REGION_RADIUS_M = 0.004
 EXPLAIN_MAX_POINTS = 200
@@ -218,7 +218,7 @@ def _recommend_dict(r: Any, region: str, current: Any = None) -> dict[str, Any]:
 RESIM_SEEDS = 3
 
 
-def _input_scans(bag: Path) -> dict[int, Any]:
+def input_scans(bag: Path) -> dict[int, Any]:
     """The bag's scans by stamp (ns), with their simulation metadata; {} for bags without xmetro metadata."""
     try:
         from ..ros.scan_io import read_scans
@@ -249,10 +249,10 @@ def _resimulated(inputs: dict[int, Any], worst: dict[str, Any], recommend: dict[
             "coverage_after": after.coverage, "seeds": RESIM_SEEDS}
 
 
-def _report_scans(inputs: dict[int, Any], outputs: list[Any]) -> list[Any]:
+def report_scans(inputs: dict[int, Any], outputs: list[Any]) -> list[Any]:
     """Report rows: quality, processed points, predicted deviations, actual errors where the artifact is known
     (``inputs``: the bag's scans by stamp)."""
-    from ..ros.node_outputs import deviation_arrays
+    from ..ros.node_outputs import cloud_arrays, deviation_arrays
     from .report_html import ReportScan
 
     rows = []
@@ -267,6 +267,9 @@ def _report_scans(inputs: dict[int, Any], outputs: list[Any]) -> list[Any]:
         if o.deviations is not None:
             pts, dev, _ = deviation_arrays(o.deviations)
             rs.points_mm, rs.predicted_mm = pts, dev
+            a = cloud_arrays(o.deviations)
+            if {"ux", "uy", "uz"} <= set(a):
+                rs.uncertainty_mm = np.stack([a["ux"], a["uy"], a["uz"]], axis=1).astype(np.float64) * 1e3
             if src is not None and src.artifact is not None:
                 actual = np.full_like(pts, np.nan)
                 ok = np.isfinite(pts).all(axis=1) & np.isfinite(dev).all(axis=1)
@@ -329,7 +332,7 @@ def run_demo(
                 if "error" in v:
                     res.errors.append(f"{k} failed: {v['error']}")
             if "error" not in res.recommend:
-                inputs = _input_scans(bag)
+                inputs = input_scans(bag)
                 res.resim = _resimulated(inputs, res.worst, res.recommend)
                 if res.resim is not None:
                     rs = res.resim
@@ -346,8 +349,8 @@ def run_demo(
         (out_dir / "node.log").write_text("\n".join(node.lines) + "\n")
     t = time.monotonic()
     if res.outputs and inputs is None:
-        inputs = _input_scans(bag)
-    scans = _report_scans(inputs or {}, res.outputs) if res.outputs else []
+        inputs = input_scans(bag)
+    scans = report_scans(inputs or {}, res.outputs) if res.outputs else []
     res.labels = [s.label for s in scans]
     summary = _summary_lines(res)
     res.report = write_report(

@@ -33,6 +33,7 @@ class ReportScan:
         predicted_mm: (N, 3) predicted deviations, mm (NaN where none).
         actual_mm: (N, 3) actual errors nominal − measured, mm, where the artifact is known; else None.
         systematic_mm: (N, 3) noise-free systematic error (simulated scans: the simulator's expected error), mm.
+        uncertainty_mm: (N, 3) U (95 %) per axis as published (``ux, uy, uz``), mm (NaN where none).
     """
 
     index: int
@@ -42,6 +43,7 @@ class ReportScan:
     predicted_mm: np.ndarray | None = None
     actual_mm: np.ndarray | None = None
     systematic_mm: np.ndarray | None = None
+    uncertainty_mm: np.ndarray | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -58,7 +60,7 @@ def _png(fig: Any) -> str:
 
 
 def deviation_map_png(points_mm: np.ndarray, panels: list[tuple[str, np.ndarray]], vmax_um: float | None = None,
-                      max_points: int = 15000) -> str:
+                      max_points: int = 15000, label: str = "|error| [µm]") -> str:
     """Base64 PNG: one top-view (x, y) scatter per panel, coloured by the norm of the panel's (N, 3) mm values, µm."""
     import matplotlib
 
@@ -81,7 +83,7 @@ def deviation_map_png(points_mm: np.ndarray, panels: list[tuple[str, np.ndarray]
         ax.set_xlabel("x [mm]")
         ax.set_ylabel("y [mm]")
         ax.set_aspect("equal")
-        fig.colorbar(sc, ax=ax, label="|error| [µm]")
+        fig.colorbar(sc, ax=ax, label=label)
     return _png(fig)
 
 
@@ -140,8 +142,11 @@ def write_report(
     recommend: dict[str, Any] | None = None,
     summary_lines: list[str] | None = None,
     meta: dict[str, Any] | None = None,
+    title: str = "xmetro demo: replay through a live xmetro_node",
+    services_note: str = "not requested",
 ) -> Path:
-    """Write the HTML report and return its path.
+    """Write the HTML report and return its path. ``title``: the page's heading; ``services_note``: what the
+    ~/explain and ~/recommend_settings sections say when they were not asked (e.g. a report of a recorded bag).
 
     ``explain``: {"scan", "region", "feature_names", "feature_units", "axis_names", "mean_abs_shap_um" (F, A),
     "base_values_um", "n_points", "message"} or {"error": text}. ``recommend``: {"rows": [[label, value], ...],
@@ -149,13 +154,13 @@ def write_report(
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    parts = ["<!DOCTYPE html><html><head><meta charset='utf-8'><title>xmetro demo report</title><style>",
+    parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{_e(title)}</title><style>",
              "body{font-family:sans-serif;max-width:1100px;margin:1em auto;color:#222}",
              "table{border-collapse:collapse;font-size:12px;margin:0.5em 0}",
              "td,th{border:1px solid #bbb;padding:3px 6px;text-align:right}th{background:#eee}",
              "td:first-child,th:first-child{text-align:left}.v{color:#fff;font-weight:bold;padding:2px 5px}",
              "pre{background:#f6f6f6;padding:0.6em;font-size:12px;white-space:pre-wrap}</style></head><body>",
-             "<h1>xmetro demo: replay through a live xmetro_node</h1>"]
+             f"<h1>{_e(title)}</h1>"]
     if meta:
         parts.append(_table(["item", "value"], [[k, v] for k, v in meta.items()]))
     if summary_lines:
@@ -218,10 +223,15 @@ def write_report(
         extra = "; ".join(f"{k}: {v}" for k, v in s.extra.items())
         parts.append(f"<h3>#{s.index} {_e(s.label)}</h3><p>{_e(extra)}</p>"
                      f"<img alt='deviation map {s.index}' src='data:image/png;base64,{img}'/>")
+        if s.uncertainty_mm is not None and np.isfinite(s.uncertainty_mm).any():
+            # U on its own scale: it is wider than the deviations by construction (95 % of the error about d).
+            uimg = deviation_map_png(s.points_mm, [("U, 95 % (norm of ux, uy, uz)", s.uncertainty_mm)],
+                                     label="U [µm]")
+            parts.append(f"<img alt='uncertainty map {s.index}' src='data:image/png;base64,{uimg}'/>")
 
     parts.append("<h2>Why is the worst region bad? (~/explain, SHAP)</h2>")
     if not explain:
-        parts.append("<p>not requested</p>")
+        parts.append(f"<p>{_e(services_note)}</p>")
     elif "error" in explain:
         parts.append(f"<p><b>~/explain failed:</b> {_e(explain['error'])}</p>")
     else:
@@ -240,7 +250,7 @@ def write_report(
 
     parts.append("<h2>How to rescan it? (~/recommend_settings)</h2>")
     if not recommend:
-        parts.append("<p>not requested</p>")
+        parts.append(f"<p>{_e(services_note)}</p>")
     elif "error" in recommend:
         parts.append(f"<p><b>~/recommend_settings failed:</b> {_e(recommend['error'])}</p>")
     else:
