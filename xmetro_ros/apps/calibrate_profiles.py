@@ -90,21 +90,21 @@ def calibrate_profiles(campaign_path: str | Path, out: str | Path, *, iterations
     model = ProfileModel(iterations=iterations, seed=seed, threads=threads)
     model.fit(table.X, table.deviation, pos, fit_rows=table.kept, calibration_rows=table.on_arc,
               feature_names=table.feature_names)
+    geometry = None
+    if sweep:  # the scanner description the data support: into the card as it is written, not patched after
+        log("scanner geometry sweep: fan origins and camera directions, held out by position (half the positions)")
+        geometry = scanner_geometry(table, seed=seed, iterations=min(iterations, 200))
     mdir = out / "models" / MODEL_NAME
     rng = np.random.default_rng(seed)
     check_rows = rng.choice(len(table), size=min(2000, len(table)), replace=False)
+    scanner: dict[str, Any] = {"id": camp.scanner_id, "serial": camp.scanner_serial}
+    if geometry is not None:
+        scanner["geometry"] = geometry
     model.export(mdir, table.X[check_rows], extra_card={
-        "scanner": {"id": camp.scanner_id, "serial": camp.scanner_serial},
+        "scanner": scanner,
         "campaign": camp.card(), "trained_by": f"xmetro calibrate {camp.path.name} (profile campaign)",
         "training": {"profiles": len(table.names), "positions": n_pos, "points_fit": int(table.kept.sum()),
                      "points_calibration": int(table.on_arc.sum())}})
-    geometry = None
-    if sweep:
-        log("scanner geometry sweep: fan origins and camera directions, held out by position (half the positions)")
-        geometry = scanner_geometry(table, seed=seed, iterations=min(iterations, 200))
-        card = json.loads((mdir / "card.json").read_text())
-        card["scanner"]["geometry"] = geometry
-        (mdir / "card.json").write_text(json.dumps(card, indent=1))
     iou = segmentation_iou(table, np.arange(len(table.names)))
     labelled = np.isfinite(iou)
     hw = model.half_width_mm_ if model.half_width_mm_ is not None else np.array([])

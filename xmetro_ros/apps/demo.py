@@ -26,7 +26,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["DemoResult", "default_demo_bag", "input_scans", "register", "report_scans", "run", "run_demo"]
+__all__ = ["DemoResult", "default_demo_bag", "input_scans", "register", "report_scans", "run", "run_demo",
+           "scan_summary_line"]
 
 REGION_RADIUS_M = 0.004
 EXPLAIN_MAX_POINTS = 200
@@ -363,6 +364,14 @@ def run_demo(
     return res
 
 
+def scan_summary_line(index: int, label: str, q: dict[str, Any]) -> str:
+    """One judged scan as the demo's and `xmetro report`'s summaries print it (``q``: ``OutputSet.summary_dict()``)."""
+    vn = ("OK", "WARN", "RESCAN", "ERROR")[q["verdict"]]
+    return (f"  #{index} {label}: {vn:<6s} usable {q['usable_fraction']:.2f} of valid points, "
+            f"p95 |e| x/y/z = " + "/".join(f"{v * 1e3:.1f}" for v in q["p95_abs_error_mm"]) + " µm"
+            + (" (settings defaulted)" if q["settings_defaulted"] else ""))
+
+
 def _summary_lines(res: DemoResult) -> list[str]:
     lines = []
     if res.replay is not None:
@@ -371,11 +380,8 @@ def _summary_lines(res: DemoResult) -> list[str]:
                      f"{r.answered} judged")
         for i, o in enumerate(res.outputs):
             q = o.summary_dict()
-            vn = ("OK", "WARN", "RESCAN", "ERROR")[q["verdict"]]
             label = res.labels[i] if i < len(res.labels) else f"@{q['stamp_ns'] / 1e9:.0f}s"
-            lines.append(f"  #{i} {label}: {vn:<6s} usable {q['usable_fraction']:.2f} of valid points, "
-                         f"p95 |e| x/y/z = " + "/".join(f"{v * 1e3:.1f}" for v in q["p95_abs_error_mm"]) + " µm"
-                         + (" (settings defaulted)" if q["settings_defaulted"] else ""))
+            lines.append(scan_summary_line(i, label, q))
     if res.worst is not None:
         c = res.worst["center_m"] * 1e3
         lines.append(f"worst region: scan #{res.worst['scan']} around ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) mm, "

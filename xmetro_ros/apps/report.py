@@ -29,7 +29,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def write_bag_report(bag: str | Path, out: str | Path, node_name: str = "xmetro_node") -> Path:
     """Write the report of ``bag``'s judged scans to ``out``; ValueError when it holds none."""
     from ..ros.node_outputs import read_outputs
-    from .demo import input_scans, report_scans
+    from .demo import input_scans, report_scans, scan_summary_line
     from .report_html import write_report
 
     outputs = read_outputs(bag, node_name=node_name)
@@ -39,13 +39,8 @@ def write_bag_report(bag: str | Path, out: str | Path, node_name: str = "xmetro_
     scans = report_scans(input_scans(Path(bag)), outputs)
     models = sorted({str(o.quality.model_id) for o in outputs} - {""})
     lines = [f"{len(outputs)} judged scans in {bag}"]
-    for s in scans:
-        q = s.quality
-        vn = ("OK", "WARN", "RESCAN", "ERROR")[q["verdict"]]
-        lines.append(f"  #{s.index} {s.label}: {vn:<6s} usable {q['usable_fraction']:.2f} of "
-                     f"{q['points_valid']} valid points, p95 |d| x/y/z = "
-                     + "/".join(f"{v * 1e3:.1f}" for v in q["p95_abs_error_mm"]) + " µm"
-                     + (f" — {q['message']}" if q["message"] else ""))
+    lines += [scan_summary_line(s.index, s.label, s.quality) + (f" — {s.quality['message']}"
+                                                                if s.quality["message"] else "") for s in scans]
     return write_report(out, scans, summary_lines=lines,
                         meta={"bag": str(bag), "model set(s)": ", ".join(models) or "-"},
                         title=f"xmetro report: {Path(bag).name}",

@@ -45,6 +45,8 @@ class ProfileModelSet:
         self.feature_names: list[str] = list(self.card["features"])
         hw = self.card["uncertainty"]["half_width_mm"]
         self.half_width_mm = np.array([np.nan if v is None else float(v) for v in hw], dtype=np.float64)
+        if len(self.half_width_mm) != N_BINS:
+            raise ProfileModelError(f"{d}: the card has {len(self.half_width_mm)} U bins, expected {N_BINS}")
         if "inc_plane" not in self.feature_names:
             raise ProfileModelError(f"{d}: the card's features {self.feature_names} lack inc_plane (U's bins)")
         self._inc = self.feature_names.index("inc_plane")
@@ -75,9 +77,6 @@ class ProfileModelSet:
     def uncertainty(self, X: np.ndarray) -> np.ndarray:
         """U (M,) mm (NaN where the card's bin was never calibrated)."""
         X = self._check(X)
-        if len(self.half_width_mm) != N_BINS:
-            raise ProfileModelError(f"{self.model_dir}: the card has {len(self.half_width_mm)} U bins, expected "
-                                    f"{N_BINS}")
         return self.half_width_mm[angle_bins(X[:, self._inc])]
 
     def in_domain(self, X: np.ndarray, margin: float = 0.05) -> np.ndarray:

@@ -231,8 +231,7 @@ def from_profiles(path: Path, artifact: Artifact, fit_center: bool = True) -> Lo
     points = np.column_stack([xz[:, 0], zeros, xz[:, 1]])
     normals = np.column_stack([n2[:, 0], zeros, n2[:, 1]])
     # The sensor's side: the kept arc faces it (normals within ARC_MAX_ANGLE_DEG of its axis).
-    side = np.sign(np.bincount(group, n2[:, 1]))
-    side[side == 0] = 1.0
+    side = np.asarray(tab.toward, dtype=float)[used]  # per profile, from the segmentation (the side the arc faces)
     L = np.zeros((n, 3))
     L[:, 2] = side[group]
     # Rank along x inside each profile.
