@@ -44,7 +44,7 @@ def main() -> None:
     scanner = ScannerModel.load()
     custom = os.environ.get("XMETRO_TEST_MODEL_DIR")
     judge = ModelSet.load(custom or None)
-    # as the node: the search runs with the pose model (the shipped one next to the shipped primary; docs/node.md)
+    # as the node: the search runs with the pose model (the shipped one next to the shipped primary; docs/services.md)
     pose_path = pose_model_path(custom, None)
     pose = None if pose_path is None else load_pose_model(pose_path, judge)
     model = pose if pose is not None else judge

@@ -3,8 +3,9 @@ default) simulated and PUBLISHED OVER DDS into a real ``xmetro record`` process,
 ``xmetro calibrate``, then a node started with the result judges NEW recordings of that scanner (replayed into it
 with ``xmetro replay``'s ``replay_bag``). Judged against the simulator truth kept in the test:
 
-- accuracy: MAE of the published deviations against the actual error (nominal − measured) at the same points,
-  against the oracle floor = MAE of the simulator's own noise-free expected error as a predictor of that error;
+- accuracy: MAE of the published deviations against the actual deviation (measured − nominal, the published sign)
+  at the same points, against the oracle floor = MAE of the simulator's own noise-free expected error as a
+  predictor of that error;
 - intervals: coverage of the published U (95 %) on the new clouds (known positions).
 """
 
@@ -26,6 +27,7 @@ from test_calibrate import CENTRES, RADIUS, SHEET
 from xmetro_ros.bag.writer import BagWriter
 from xmetro_ros.scan.artifacts import Sphere
 from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
+from xmetro_ros.scan.targets import published_deviation
 from xmetro_ros.sim import simulate_scan
 
 TIMEOUT = 60.0
@@ -170,11 +172,11 @@ def _judge(outputs: Path, truths: list) -> dict:
         hit = (dist < 1e-7) & np.all(np.isfinite(np.stack([d["dx"], d["dy"], d["dz"], d["ux"], d["uy"], d["uz"]],
                                                           1)), axis=1)
         rows = idx[j[hit]]
-        y = Sphere(RADIUS, CENTRES[ball]).errors(pts[rows])
+        y = published_deviation(Sphere(RADIUS, CENTRES[ball]).errors(pts[rows]))  # measured − nominal
         pred.append(np.stack([d["dx"], d["dy"], d["dz"]], 1)[hit] * 1e3)
         unc.append(np.stack([d["ux"], d["uy"], d["uz"]], 1)[hit] * 1e3)
         act.append(y)
-        orc.append(sim.expected_error.reshape(-1, 3)[rows])
+        orc.append(published_deviation(sim.expected_error.reshape(-1, 3)[rows]))
     pred, unc, act, orc = (np.concatenate(v).astype(np.float64) for v in (pred, unc, act, orc))
     mae = np.abs(pred - act).mean(0)
     floor = np.abs(orc - act).mean(0)

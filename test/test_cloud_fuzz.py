@@ -314,9 +314,10 @@ JUDGE = settings(FUZZ, max_examples=150)
 AXIS_SPECIAL = [math.nan, math.inf, -math.inf, 3e38, -3e38, 1e308, -1e308, 1001.0, -999.0, 1e-45, 5e-324, -0.0]
 EXTRA_FIELDS = [("intensity", 7, 1), ("line", 4, 1), ("t", 8, 1), ("rgb", 6, 1), ("normal", 7, 3), ("ring", 2, 2)]
 ERROR_CODES = {getattr(ScanQuality, a): a[len("ERROR_"):] for a in dir(ScanQuality) if a.startswith("ERROR_")}
-# the error codes docs/node.md lists under "Verdict" ("**ERROR** — ...; `error_code` says why (EMPTY_CLOUD, ...)")
+# the error codes docs/scan-processing.md lists under "Verdict"
+# ("**ERROR** — ...; `error_code` says why (EMPTY_CLOUD, ...)")
 _DOC = re.search(r"\*\*ERROR\*\* — .*?says why \(([^)]*)\)",
-                 (Path(__file__).resolve().parents[1] / "docs" / "node.md").read_text(), re.S)
+                 (Path(__file__).resolve().parents[1] / "docs" / "scan-processing.md").read_text(), re.S)
 DOCUMENTED_ERRORS = {c.strip() for c in _DOC.group(1).split(",")} if _DOC else set()
 
 
@@ -409,7 +410,7 @@ def test_judge_publishes_every_point_accounted_for(core, msg):
     q = out.quality
     name = ERROR_CODES.get(q.error_code)
     assert q.verdict in range(len(fl.VERDICT_NAMES)) and name is not None, (q.verdict, q.error_code)
-    assert name == "NONE" or name in DOCUMENTED_ERRORS, f"{name} is not among docs/node.md's error codes"
+    assert name == "NONE" or name in DOCUMENTED_ERRORS, f"{name} is not among docs/scan-processing.md's error codes"
     assert name != "INTERNAL", q.message
     assert (q.verdict == ScanQuality.VERDICT_ERROR) == (name != "NONE"), (q.verdict, name, q.message)
     assert (out.deviations is None) == (out.corrected is None) == (q.verdict == ScanQuality.VERDICT_ERROR)

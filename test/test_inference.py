@@ -193,7 +193,7 @@ def test_explain_in_cloud_explains_the_published_predictions(trained):
 
 def test_node_processing_path_never_imports_torch():
     """The live path (decode → preprocess → features → ONNX Runtime → flags, and the explainer) runs without
-    PyTorch or open3d in the process: each costs ~180 MB of resident memory in the node (docs/node.md)."""
+    PyTorch or open3d in the process: each costs ~180 MB of resident memory in the node (docs/performance.md)."""
     import subprocess
     import sys
 

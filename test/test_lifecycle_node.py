@@ -80,10 +80,10 @@ def test_lifecycle_transitions_drive_the_node(rig):
     assert _no_quality_for(client, cloud_of(sim_scan(7 * S)))  # inactive (never activated): not processed
     assert _accounting(node) == idle, "a scan sent before activation moved the node's own accounting"
 
-    # activate: scans are judged (best-effort subscription by default)
+    # activate: scans are judged; the subscription follows its one (reliable) publisher (reliability: auto)
     assert _change(tester, Transition.TRANSITION_ACTIVATE)
     assert _state(tester) == State.PRIMARY_STATE_ACTIVE
-    assert node.sub_scan.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+    assert node.sub_scan.qos_profile.reliability == ReliabilityPolicy.RELIABLE
     client.wait_matched()
     client.pub_settings.publish(settings_msg(base, 5 * S))
     assert wait_for(lambda: node.core.settings_count >= 1, TIMEOUT)

@@ -74,7 +74,7 @@ def test_each_scan_is_judged_by_the_model_whose_domain_holds_it(models, name, r_
 def test_a_looking_down_part_stays_with_the_primary(models):
     """A part scanned looking down (the step, presented as in the parts study) lies partly outside the primary's
     domain — and less outside the pose model's — but its head orientation is the primary's: it stays with the
-    primary, whose figures on the parts are the documented ones (docs/parts.md)."""
+    primary, whose figures on the parts are the documented ones (docs/parts-generalisation.md)."""
     from xmetro_ros.parts.study import PRESENTATION
     from xmetro_ros.scan.generated_parts import make_part
 

@@ -99,7 +99,8 @@ def test_outputs_match_offline_and_flags(rig):
 
     res = _offline(node, msg, base)
     d = _arrays(dev)
-    expect_m = (res.deviations * 1e-3).astype(np.float32)
+    # published d = measured − nominal: the model's target (nominal − measured) with its sign flipped, bit for bit
+    expect_m = (-res.deviations * 1e-3).astype(np.float32)
     np.testing.assert_array_equal(np.column_stack([d["dx"], d["dy"], d["dz"]]), expect_m)
     np.testing.assert_array_equal(d["flags"].astype(np.uint16), res.flags)
     # invalid (NaN) grid cells are flagged and have no deviation
@@ -116,12 +117,12 @@ def test_outputs_match_offline_and_flags(rig):
     assert q.verdict == res.quality["verdict"]
     assert q.processing_latency > 0
 
-    # corrected: same fields, x, y, z + predicted error (unpredicted points unchanged)
+    # corrected: same fields, x, y, z − d (measured minus the published deviation; unpredicted points unchanged)
     assert [f.name for f in corr.fields] == [f.name for f in msg.fields]
     c, m = _arrays(corr), _arrays(msg)
     np.testing.assert_array_equal(d["xyz"], m["xyz"])  # deviations carry the points exactly as received
-    add = np.nan_to_num(res.deviations * 1e-3)
-    np.testing.assert_allclose(c["xyz"], m["xyz"] + add.astype(np.float32), rtol=0, atol=1e-7, equal_nan=True)
+    pub = np.nan_to_num(np.column_stack([d["dx"], d["dy"], d["dz"]]))
+    np.testing.assert_allclose(c["xyz"], m["xyz"] - pub, rtol=0, atol=1e-7, equal_nan=True)
     np.testing.assert_array_equal(c["intensity"], m["intensity"])
 
     # flags follow their thresholds: recompute them from the judged scan
@@ -162,7 +163,7 @@ def test_outputs_match_offline_and_flags(rig):
     qb, devb, corrb = client.send(be)
     assert qb.error_code == ScanQuality.ERROR_NONE, qb.message
     db = _arrays(devb)
-    np.testing.assert_array_equal(db["dx"], (le_res.deviations[:, 0] * 1e-3).astype(np.float32))
+    np.testing.assert_array_equal(db["dx"], (-le_res.deviations[:, 0] * 1e-3).astype(np.float32))
     assert corrb.is_bigendian
 
 
@@ -313,8 +314,9 @@ def test_services(rig):
     shap = np.array(r.shap_values).reshape(P, F, A)
     pred = np.array(r.predictions).reshape(P, A)
     np.testing.assert_allclose(np.array(r.base_values) + shap.sum(axis=1), pred, rtol=0, atol=1e-9)
-    # = exactly what ~/deviations published for these points, whatever the model family
-    np.testing.assert_allclose(pred, res.deviations[np.array(req.indices)] * 1e-3, rtol=0, atol=1e-9)
+    # = exactly what ~/deviations published for these points (d = measured − nominal = −target), whatever the
+    # model family: the SHAP values are contributions to the published d
+    np.testing.assert_allclose(pred, -res.deviations[np.array(req.indices)] * 1e-3, rtol=0, atol=1e-9)
     d = _arrays(dev)
     published = np.column_stack([d["dx"], d["dy"], d["dz"]]).astype(np.float64)[np.array(req.indices)]
     np.testing.assert_allclose(pred, published, rtol=0, atol=1e-9)

@@ -19,7 +19,7 @@ from xmetro_ros.ros.convert import scan_to_cloud
 from xmetro_ros.ros.dds_env import fresh_domain_id
 from xmetro_ros.ros.node import XmetroNode
 from xmetro_ros.ros.rclpy_util import NodeProcess, NodeSpinner, call_service, wait_for
-from xmetro_ros.scan.resources import default_model_dir, repo_root
+from xmetro_ros.scan.resources import config_path, default_model_dir
 from xmetro_ros.srv import Explain, RecommendSettings
 
 S = 1_000_000_000
@@ -107,7 +107,7 @@ def test_node_process_with_params_file():
     params = {"reliability": "best_effort"}
     if os.environ.get("XMETRO_TEST_MODEL_DIR"):
         params["model_dir"] = os.environ["XMETRO_TEST_MODEL_DIR"]
-    proc = NodeProcess(params_file=str(repo_root() / "config" / "xmetro.yaml"), params=params, domain_id=domain)
+    proc = NodeProcess(params_file=str(config_path("xmetro.yaml")), params=params, domain_id=domain)
     proc.start(timeout=60.0)
     old = os.environ.get("ROS_DOMAIN_ID")
     os.environ["ROS_DOMAIN_ID"] = str(domain)

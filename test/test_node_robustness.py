@@ -48,6 +48,7 @@ COUNTERS = ("scans_received", "scans_judged", "scans_dropped", "scans_lost")
 @pytest.fixture(scope="module")
 def rig():
     values = {**RELAXED, "scan_timeout": 1.5, "diagnostics_period": 0.2, "max_processing_time": 5.0,
+              "loss_warn_period": 1.0,  # < scan_timeout: OK is seen between a loss and staleness
               "model_dir": os.environ.get("XMETRO_TEST_MODEL_DIR", "")}
     overrides = [Parameter(k, value=v) for k, v in values.items()]
     node_sp = NodeSpinner(lambda ctx: XmetroNode(NAME, context=ctx, parameter_overrides=overrides))
@@ -148,6 +149,7 @@ def test_burst_of_50_every_scan_accounted_for(rig):
     _with_settings(node, client, 29 * S)
     q0, _, _ = client.send(cloud_of(sim_scan(30 * S)))  # the publisher's baseline sequence number
     c0 = _counters(q0)
+    mark0 = client.diag_mark()
     msg = cloud_of(sim_scan(31 * S))
     stamps = [31 * S + k for k in range(50)]
     for t in stamps:  # back to back: publish() serialises the message at once, so one object serves
@@ -172,7 +174,10 @@ def test_burst_of_50_every_scan_accounted_for(rig):
     assert len(got) == received
     drops = [q for q in got if q.error_code == ScanQuality.ERROR_QUEUE_OVERFLOW]
     assert len(drops) == d["scans_dropped"] and all(q.verdict == ScanQuality.VERDICT_ERROR for q in drops)
-    # /diagnostics carries the same accounting
+    # scans lost before the callback are said on /diagnostics (WARN for loss_warn_period, with the cause)
+    if d["scans_lost"] > 0:
+        client.wait_diag_level(WARN, mark0, lambda st: "lost in transport" in st.message)
+    # /diagnostics carries the same accounting (OK again once loss_warn_period has passed)
     mark = client.diag_mark()
     diag = client.wait_diag_level(OK, mark, lambda st: {kv.key: kv.value for kv in st.values}
                                   .get("scans_received") == str(c1["scans_received"]))

@@ -1,8 +1,9 @@
 """Per-point uncertainty through a real node over DDS (issue 14): ``ux, uy, uz`` in ``~/deviations``, the ISO 14253-1
 decision classes, ScanQuality's U statistics and class counts, SHAP of U, and the multivariate domain.
 
-Judged against the simulator's truth: the actual error nominal − measured (``targets.point_errors`` on the nominal
-sphere) and the random part's std (``scan.noise_std``)."""
+Judged against the simulator's truth: the actual deviation measured − nominal, the sign ``~/deviations`` publishes
+(``published_deviation`` of ``targets.point_errors`` on the nominal sphere, the study's nominal − measured) and the
+random part's std (``scan.noise_std``)."""
 
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ from xmetro_ros.ros.node import XmetroNode
 from xmetro_ros.ros.rclpy_util import NodeSpinner, call_service, wait_for
 from xmetro_ros.scan.artifacts import Sphere
 from xmetro_ros.scan.geometry import HeadPose
-from xmetro_ros.scan.targets import point_errors
+from xmetro_ros.scan.targets import point_errors, published_deviation
 from xmetro_ros.sim import simulate_scan
 from xmetro_ros.srv import Explain
 
@@ -99,16 +100,16 @@ def test_uncertainty_published_and_judged_against_the_simulator(rig):
     assert np.all(fin_u | ((flags & (NO_PREDICTION | fl.FLAG_NO_UNCERTAINTY)) > 0))
     assert not np.any(flags & fl.FLAG_NO_UNCERTAINTY)  # calibrated model: every predicted point has U
     assert np.array_equal(fin_d, fin_u) and np.all(u[fin_u] > 0)
-    # ~/corrected = points + d (its residual uncertainty is U): unchanged by the uncertainty outputs
+    # ~/corrected = points − d (its residual uncertainty is U): unchanged by the uncertainty outputs
     cx, _ = xyz_fields(corr)
-    np.testing.assert_allclose(np.asarray(cx)[fin_d], a["xyz"][fin_d] + d[fin_d].astype(np.float32), atol=1e-7)
+    np.testing.assert_allclose(np.asarray(cx)[fin_d], a["xyz"][fin_d] - d[fin_d].astype(np.float32), atol=1e-7)
 
     # U against the simulator's truth: coverage of |actual error − d| ≤ U per axis on a fresh scan, sharpness
     # against the oracle half-width 1.96·noise_std, and U ranks points like the true spread
     pts = scan.points.reshape(-1, 3)
     inj = np.zeros(len(pts), bool) if scan.injected_outlier is None else scan.injected_outlier.reshape(-1)
     sel = fin_d & ~inj
-    actual_m = point_errors(pts[sel], Sphere(RADIUS, np.zeros(3))) * 1e-3
+    actual_m = published_deviation(point_errors(pts[sel], Sphere(RADIUS, np.zeros(3)))) * 1e-3  # measured − nominal
     cov = (np.abs(actual_m - d[sel]) <= u[sel]).mean(axis=0)
     assert np.all((cov >= 0.90) & (cov <= 0.99)), cov  # exact acceptance (94-96 % over 54 clouds): test_uncertainty
     oracle_m = 1.96 * scan.noise_std.reshape(-1, 3)[sel] * 1e-3
@@ -229,7 +230,7 @@ def test_scan_at_a_searched_orientation_is_judged_by_the_pose_model(rig):
     decoded = cloud_to_scan(cloud_of(rescan), entry.settings, entry.pose, node.core.scanner.id)
     own = ScanHandler(pose_model, ScannerModel.load(), node.core.handler.params).process(decoded)
     np.testing.assert_allclose(np.column_stack([a["dx"], a["dy"], a["dz"]])[fin],
-                               own.deviations[fin] * 1e-3, rtol=1e-5, atol=1e-9)
+                               -own.deviations[fin] * 1e-3, rtol=1e-5, atol=1e-9)  # published d = −target
     np.testing.assert_allclose(np.column_stack([a["ux"], a["uy"], a["uz"]])[fin],
                                own.uncertainty[fin] * 1e-3, rtol=1e-5, atol=1e-9)
     primary_only = ScanHandler(node.core.model, ScannerModel.load(), HandlerParams()).process(rescan)

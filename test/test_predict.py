@@ -62,13 +62,17 @@ def test_predict_outputs_are_consistent(predicted):
         assert len(pts) == q.points_received == o.deviations.width * o.deviations.height
         assert int(np.isfinite(pts).all(axis=1).sum()) == q.points_valid
         assert int(np.count_nonzero(flags[np.isfinite(pts).all(axis=1)])) == q.points_flagged <= q.points_valid
-        # corrected = measured + predicted deviation where there is a prediction (float32 on the wire)
+        # corrected = measured − d where there is a prediction (d = the published dx, dy, dz = measured − nominal;
+        # deviation_arrays reads them back as the model's target −d; float32 on the wire)
         from xmetro_ros.ros.node_outputs import cloud_arrays
 
-        c = cloud_arrays(o.corrected)
+        c, published = cloud_arrays(o.corrected), cloud_arrays(o.deviations)
         ok = np.isfinite(dev).all(axis=1)
         assert ok.any()
-        np.testing.assert_allclose(c["x"][ok] * 1e3, pts[ok, 0] + dev[ok, 0], atol=1e-3)
+        d_mm = np.stack([published[k] for k in ("dx", "dy", "dz")], axis=1).astype(np.float64) * 1e3
+        np.testing.assert_array_equal(dev[ok], -d_mm[ok])
+        for k, name in enumerate("xyz"):
+            np.testing.assert_allclose(c[name][ok] * 1e3, pts[ok, k] - d_mm[ok, k], atol=1e-3)
         a = np.abs(dev[ok]).mean(axis=0) * 1e-3
         np.testing.assert_allclose(np.asarray(q.mean_abs_error), a, rtol=1e-4, atol=1e-12)
 
@@ -84,7 +88,7 @@ def test_comparison_reports_any_difference(predicted):
     _pts, dev, _ = deviation_arrays(b[1].deviations)
     j = int(np.flatnonzero(np.isfinite(dev).all(axis=1))[0])
     k = j * b[1].deviations.point_step + dx_off
-    data[k:k + 4] = np.frombuffer(np.float32(dev[j, 0] * 1e-3 + 1e-6).tobytes(), dtype=np.uint8)
+    data[k:k + 4] = np.frombuffer(np.float32(-dev[j, 0] * 1e-3 + 1e-6).tobytes(), dtype=np.uint8)  # published −t
     b[1].deviations.data = data.tobytes()
     b[2].quality.verdict = 3
     diffs = compare_outputs(a, b)

@@ -21,6 +21,7 @@ from xmetro_ros.msg import ScanQuality
 from xmetro_ros.ros.node_outputs import cloud_arrays
 from xmetro_ros.ros.rclpy_util import NodeSpinner, call_service
 from xmetro_ros.ros.scan_io import write_scans
+from xmetro_ros.scan.targets import published_deviation
 
 ROOT = Path(__file__).resolve().parents[1]
 TRUCK = ROOT.parent / "shared" / "data" / "bags" / "rosbag2_pointcloud2_truck"
@@ -105,9 +106,9 @@ def test_node_reads_field_from_pointcloud2(node, loop_model, tmp_path):
     actual, resid, inten = [], [], []
     for scan, dev in zip(scans, devs, strict=True):
         d = cloud_arrays(dev)
-        pub = np.column_stack([d["dx"], d["dy"], d["dz"]]).astype(np.float64) * 1e3  # mm
+        pub = np.column_stack([d["dx"], d["dy"], d["dz"]]).astype(np.float64) * 1e3  # mm, measured − nominal
         pts = scan.points.reshape(-1, 3)
-        err = scan.artifact.errors(pts)
+        err = published_deviation(scan.artifact.errors(pts))  # the actual deviation in the published sign
         ok = np.isfinite(pub).all(axis=1) & np.isfinite(err).all(axis=1)
         normal = (pts[ok] - scan.artifact.c) / np.linalg.norm(pts[ok] - scan.artifact.c, axis=1, keepdims=True)
         actual.append(np.einsum("ij,ij->i", err[ok], normal))

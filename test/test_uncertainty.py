@@ -94,7 +94,7 @@ def test_coverage_sharpness_and_rank_on_new_seeds_and_artifacts(trained):
     for ax, m in met.items():
         assert m["n"] > 10_000, ax
         # One training realization: its trajectory depends on the CPU's float kernels (same code and seeds gave
-        # X/Y/Z 95.35 / 94.27 / 95.29 % on one machine, 96.06 / 93.93 / 95.39 % on this one; docs/learning.md), so
+        # X/Y/Z 95.35 / 94.27 / 95.29 % on one machine, 96.06 / 93.93 / 95.39 % on this one; docs/uncertainty.md), so
         # the fresh model is held to 93-97 %; the published intervals' 94-96 % is asserted on the shipped model set
         # (test_shipped_default_intervals_on_new_seeds_and_artifacts).
         assert 0.93 <= m["coverage"] <= 0.97, (ax, m["coverage"])
@@ -170,7 +170,7 @@ def test_card_without_multivariate_domain_falls_back_to_min_max(trained, tmp_pat
 
 def test_shipped_default_intervals_on_new_seeds_and_artifacts():
     """The packaged default (full profile, calibrated on campaign seed 1000) on a Ø40 sphere and an r 15 mm
-    cylinder simulated with seed 3 (docs/learning.md table). Calibrated per condition (incidence × exposure) with
+    cylinder simulated with seed 3 (docs/uncertainty.md table). Calibrated per condition (incidence × exposure) with
     the envelope over neighbouring incidence bins, every bin covers ≥ 93 % (one multiplier per axis: 91.5 % in the
     worst) and the overall coverage is conservative by up to 1.2 % (95.8-96.1 %, was 94.9-95.6 %): the price of
     holding in every condition rather than on average."""

@@ -8,7 +8,7 @@ computed per axis in every 10° incidence bin × exposure level; each cell with 
 coverage must reach 93 %. Before the per-condition calibration (judge/conditions.py) x covered 87.6-89 % at
 80-90° and 92 % at 50-60° at 0.1 ms.
 
-``pytest -s`` prints the table that docs/learning.md quotes.
+``pytest -s`` prints the table that docs/uncertainty.md quotes.
 """
 
 from __future__ import annotations

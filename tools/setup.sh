@@ -16,6 +16,19 @@ if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
   fi
 fi
 
+# The headless-browser check of the HTML reports (test/report_browser.py) drives Debian's chromium through its
+# chromedriver (a browser downloaded by a test tool is not an option here).
+if ! command -v chromium >/dev/null || ! command -v chromedriver >/dev/null; then
+  if [ "$(id -u)" = "0" ] && command -v apt-get >/dev/null; then
+    echo "setup: installing Debian's chromium and chromium-driver (the report's browser check)"
+    (apt-get update -q >/dev/null && apt-get install -y -q chromium chromium-driver >/dev/null) \
+      || echo "setup: WARNING: apt-get could not install chromium chromium-driver: the browser check will skip" >&2
+  else
+    echo "setup: note: chromium / chromedriver missing and this user cannot install them (apt-get install chromium" \
+         "chromium-driver): the browser check of the reports will be skipped" >&2
+  fi
+fi
+
 if [ ! -x "$VENV/bin/python" ]; then
   echo "setup: creating $VENV"
   "$PY" -m venv "$VENV"

@@ -6,8 +6,9 @@ Deviation maps (:func:`deviation_maps`): for held-out scans (the coverage scans,
 no held-out scan, training scans, so labelled) each model set predicts the deviations of the scan's processed
 points as the node does (one cloud, its sets, ``ModelSet.predict_with_uncertainty`` when calibrated). Each map is
 a top view of the sphere (x, y relative to its centre, scan frame) in three panels on one signed µm scale: the
-predicted and the actual error along the sphere's outward normal (nominal − measured, the target the model
-learns; with fitted positions the centre is the fitted one) and their difference (actual − predicted). Next to it:
+predicted and the actual deviation along the sphere's outward normal in the sign the node publishes (measured −
+nominal: ``published_deviation`` of the target nominal − measured the model learns; with fitted positions the
+centre is the fitted one) and their difference (actual − predicted). Next to it:
 MAE per axis and along the normal, and where the model set is calibrated the share of actual errors within ±U per
 axis. Needs matplotlib (the ``[train]`` extra, which training needs anyway).
 """
@@ -74,6 +75,7 @@ def deviation_maps(data: Any, parts: dict[str, list[int]], model_dirs: dict[str,
     from ..judge.inference import ModelSet
     from ..preprocess import PreprocessConfig, prepare_scan
     from ..scan.artifacts import Sphere
+    from ..scan.targets import published_deviation
 
     part_name, picks = _pick(parts, n_maps)
     folder = out / "deviation_maps"
@@ -97,8 +99,9 @@ def deviation_maps(data: Any, parts: dict[str, list[int]], model_dirs: dict[str,
             actual = np.asarray(tp.y, float)
             rel = pts - np.asarray(sphere.center, dtype=float)
             normal = rel / np.linalg.norm(rel, axis=1, keepdims=True)
-            pn = np.einsum("ij,ij->i", pred, normal) * 1e3
-            an = np.einsum("ij,ij->i", actual, normal) * 1e3
+            # shown in the published sign, measured − nominal (the MAEs and coverages do not depend on it)
+            pn = published_deviation(np.einsum("ij,ij->i", pred, normal)) * 1e3
+            an = published_deviation(np.einsum("ij,ij->i", actual, normal)) * 1e3
             ok = np.isfinite(pred).all(axis=1) & np.isfinite(actual).all(axis=1)
             rec: dict[str, Any] = {
                 "family": fam, "scan": f"recording {it.recording} scan {it.index} {it.placement.artifact}",
@@ -111,7 +114,7 @@ def deviation_maps(data: Any, parts: dict[str, list[int]], model_dirs: dict[str,
             }
             title = (f"{fam} · {rec['scan']} ({part_name}) · {rec['settings']} · MAE along the normal "
                      f"{rec['mae_normal_um']:.2f} µm")
-            png = _map_png(rel[ok], [("predicted", pn[ok]), ("actual (nominal − measured)", an[ok]),
+            png = _map_png(rel[ok], [("predicted", pn[ok]), ("actual (measured − nominal)", an[ok]),
                                      ("actual − predicted", an[ok] - pn[ok])], title)
             f = folder / f"{fam}_r{it.recording}_s{it.index}_{it.placement.artifact}.png"
             f.write_bytes(png)
@@ -268,7 +271,8 @@ def write_html(path: str | Path, r: dict[str, Any], maps: list[dict[str, Any]]) 
     parts.append(_table(COVERAGE_HEADER, _coverage_rows(r)) if u["families"] else
                  "<p>No uncertainty calibration (too few scans, or --no-uncertainty).</p>")
     parts.append("<h2>Deviation maps</h2><p>Top view of the sphere (x, y relative to its centre, scan frame): the "
-                 "predicted and the actual error along the outward normal (nominal − measured) and their difference, "
+                 "predicted and the actual deviation along the outward normal (measured − nominal, as the node "
+                 "publishes it) and their difference, "
                  "one signed µm scale per map.</p>")
     parts.append(_table(MAP_HEADER, [_map_row(m) for m in maps]))
     for m in maps:

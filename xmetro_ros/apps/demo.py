@@ -177,6 +177,25 @@ def _quat_deg(q: Any) -> str:
             f"turn {rz:.1f}° about Z (applied Z·Y·X) from the current pose")
 
 
+def target_orientation_text(current: Any, q_rel: Any) -> str:
+    """The recommended head orientation as a target in the frame of the current settings (``current``:
+    ScannerSettings, its ``head_pose`` in ``header.frame_id``; ``q_rel``: the recommendation, relative to that pose,
+    in the head frame): R_target = R_current · R_rel (``HeadPose.rotated``), as a quaternion and as REP 103 roll,
+    pitch, yaw (fixed axes X, Y, Z: R = Rz(yaw) Ry(pitch) Rx(roll))."""
+    from ..scan.geometry import matrix_to_quat, quat_to_matrix
+
+    o = current.head_pose.orientation
+    r = quat_to_matrix([o.x, o.y, o.z, o.w]) @ quat_to_matrix([q_rel.x, q_rel.y, q_rel.z, q_rel.w])
+    q = matrix_to_quat(r)
+    pitch = float(np.degrees(np.arcsin(np.clip(-r[2, 0], -1.0, 1.0)))) + 0.0  # + 0.0: no "-0.0°"
+    roll = float(np.degrees(np.arctan2(r[2, 1], r[2, 2]))) + 0.0
+    yaw = float(np.degrees(np.arctan2(r[1, 0], r[0, 0]))) + 0.0
+    frame = current.header.frame_id or "(the scan's frame)"
+    return (f"in frame '{frame}': roll {roll:.1f}°, pitch {pitch:.1f}°, yaw {yaw:.1f}° (REP 103, fixed X-Y-Z); "
+            f"quaternion (x, y, z, w) = ({q[0]:.4f}, {q[1]:.4f}, {q[2]:.4f}, {q[3]:.4f}); the head turns about the "
+            "region's centroid")
+
+
 def _node_tolerance_m() -> float:
     """The demo node's ``tolerance`` (it runs with the parameter's default), metres."""
     from ..ros.params import PARAMS
@@ -198,6 +217,8 @@ def _recommend_dict(r: Any, region: str, current: Any = None) -> dict[str, Any]:
         ["recommended settings", _settings_text(r.recommended_settings)],
         ["current settings (the judged scan)", _settings_text(current) if current is not None else "unknown"],
         ["recommended head orientation (relative)", _quat_deg(r.recommended_orientation)],
+        ["target head orientation", target_orientation_text(current, r.recommended_orientation)
+         if current is not None else "unknown (no current head pose)"],
         ["mean |error| before → after [µm]", f"{f(r.mean_abs_error_before)} → {f(r.mean_abs_error_after)}"],
         ["p95 |error| before → after [µm] (systematic + random part at each exposure)",
          f"{f(r.p95_abs_error_before)} → {f(r.p95_abs_error_after)}"],
@@ -264,7 +285,7 @@ def report_scans(inputs: dict[int, Any], outputs: list[Any]) -> list[Any]:
             art = src.artifact.to_dict() if src.artifact is not None else {}
             label = (f"{art.get('kind', 'artifact')} Ø{2 * float(art.get('radius', 0)):g} mm, "
                      f"{src.settings.label()}" if art else src.settings.label())
-        rs = ReportScan(index=i, label=label, quality=o.summary_dict())
+        rs = ReportScan(index=i, label=label, quality=o.summary_dict(), settings=_settings_text(o.quality.settings))
         if o.deviations is not None:
             pts, dev, _ = deviation_arrays(o.deviations)
             rs.points_mm, rs.predicted_mm = pts, dev
@@ -352,12 +373,16 @@ def run_demo(
     if res.outputs and inputs is None:
         inputs = input_scans(bag)
     scans = report_scans(inputs or {}, res.outputs) if res.outputs else []
+    if res.worst is not None and res.worst["scan"] < len(scans):  # circle the region on its scan's maps
+        c = res.worst["center_m"]
+        scans[res.worst["scan"]].region_mm = (float(c[0]) * 1e3, float(c[1]) * 1e3, REGION_RADIUS_M * 1e3)
     res.labels = [s.label for s in scans]
     summary = _summary_lines(res)
     res.report = write_report(
         out_dir / "report.html", scans, explain=res.explain, recommend=res.recommend, summary_lines=summary,
         meta={"bag": str(bag), "model": res.outputs[0].quality.model_id if res.outputs else "?",
               "outputs": str(record), "generated": time.strftime("%Y-%m-%d %H:%M:%S")},
+        tolerance_m=_node_tolerance_m(),
     )
     res.timings["report_s"] = time.monotonic() - t
     res.timings["total_s"] = time.monotonic() - t0

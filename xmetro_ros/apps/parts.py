@@ -1,4 +1,5 @@
-"""`xmetro parts`: the test parts generated in code, and the generalisation study on them (docs/parts.md).
+"""`xmetro parts`: the test parts generated in code, and the generalisation study on them (docs/parts.md,
+docs/parts-generalisation.md).
 
     xmetro parts write DIR [--form-um 40] [--format stl|ply]   CAD (and manufactured, with --form-um) meshes
     xmetro parts scan PART OUT.mcap [--form-um 40]              a simulated scan of the manufactured part in a bag,
@@ -38,7 +39,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     sc.add_argument("--settings", default="10,4,0.5", help="lateral density /mm, direction density /mm, exposure ms")
     sc.add_argument("--seed", type=int, default=0, help="seed of the simulated scan (default 0)")
     sc.set_defaults(func=run_scan)
-    s = sub.add_parser("study", help="generalisation of a model set to the mesh parts (docs/parts.md)")
+    s = sub.add_parser("study", help="generalisation of a model set to the mesh parts (docs/parts-generalisation.md)")
     s.add_argument("out", help="output directory (results, plots)")
     s.add_argument("--model", default=None, metavar="DIR", help="model set (default: the shipped one)")
     s.add_argument("--parts", default=None, help="comma-separated part names (default: all)")

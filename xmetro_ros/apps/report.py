@@ -23,15 +23,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("bag", help="a judged bag (.mcap or rosbag2 directory) holding the node's ~/quality outputs")
     p.add_argument("--out", required=True, metavar="REPORT.html", help="the HTML file to write")
     p.add_argument("--node-name", default="xmetro_node", help="the node whose outputs to read (default xmetro_node)")
+    p.add_argument("--tolerance", type=float, default=None, metavar="METRES",
+                   help="the judging node's `tolerance` parameter, stated beside the decisions (a bag does not record "
+                        "the node's parameters; default: the node's default)")
     p.set_defaults(func=run)
 
 
-def write_bag_report(bag: str | Path, out: str | Path, node_name: str = "xmetro_node") -> Path:
-    """Write the report of ``bag``'s judged scans to ``out``; ValueError when it holds none."""
+def write_bag_report(bag: str | Path, out: str | Path, node_name: str = "xmetro_node",
+                     tolerance_m: float | None = None) -> Path:
+    """Write the report of ``bag``'s judged scans to ``out``; ValueError when it holds none. ``tolerance_m``: the
+    judging node's ``tolerance`` (None: the parameter's default), stated with the decisions."""
     from ..ros.node_outputs import read_outputs
-    from .demo import input_scans, report_scans, scan_summary_line
+    from .demo import _node_tolerance_m, input_scans, report_scans, scan_summary_line
     from .report_html import write_report
 
+    if tolerance_m is not None and not tolerance_m > 0:
+        raise ValueError(f"--tolerance must be a positive length in metres, got {tolerance_m:g}")
     outputs = read_outputs(bag, node_name=node_name)
     if not outputs:
         raise ValueError(f"{bag} holds no /{node_name.strip('/')}/quality message: judge it first "
@@ -44,7 +51,11 @@ def write_bag_report(bag: str | Path, out: str | Path, node_name: str = "xmetro_
     return write_report(out, scans, summary_lines=lines,
                         meta={"bag": str(bag), "model set(s)": ", ".join(models) or "-"},
                         title=f"xmetro report: {Path(bag).name}",
-                        services_note=f"not in a recorded bag: `xmetro demo --bag {bag}` asks a live node")
+                        services_note=f"not in a recorded bag: `xmetro demo --bag {bag}` asks a live node",
+                        tolerance_m=_node_tolerance_m() if tolerance_m is None else tolerance_m,
+                        tolerance_note=("the node's default <code>tolerance</code>: a bag does not record the node's "
+                                        "parameters, <code>xmetro report --tolerance</code> states another"
+                                        if tolerance_m is None else "<code>xmetro report --tolerance</code>"))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -52,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     from ..bag.reader import BagFormatError
 
     try:
-        path = write_bag_report(args.bag, args.out, node_name=args.node_name)
+        path = write_bag_report(args.bag, args.out, node_name=args.node_name, tolerance_m=args.tolerance)
     except (ValueError, BagFormatError, OSError) as e:
         print(f"xmetro report: error: {e}", file=sys.stderr)
         return 2

@@ -30,10 +30,15 @@ class ReportScan:
         label: what was scanned and how (artifact, settings).
         quality: summary dict (``OutputSet.summary_dict()``: verdict, counts, mean/p95 |error| mm, message).
         points_mm: (N, 3) processed points in the scan frame, mm (None when the scan was in ERROR).
-        predicted_mm: (N, 3) predicted deviations, mm (NaN where none).
+        predicted_mm: (N, 3) predictions, mm (NaN where none), in the sign of ``actual_mm`` (``deviation_arrays``
+            gives the model's target nominal − measured; the report shows norms only, the same in either sign).
         actual_mm: (N, 3) actual errors nominal − measured, mm, where the artifact is known; else None.
-        systematic_mm: (N, 3) noise-free systematic error (simulated scans: the simulator's expected error), mm.
+        systematic_mm: (N, 3) noise-free systematic error (simulated scans: the simulator's expected error, nominal
+            − measured), mm.
         uncertainty_mm: (N, 3) U (95 %) per axis as published (``ux, uy, uz``), mm (NaN where none).
+        settings: the settings the scan was judged with (``ScanQuality.settings``), as text ('' when unknown).
+        region_mm: (x, y, radius) of the region explained and recommended for (the worst region), scan frame, mm;
+            circled on this scan's maps. None on other scans.
     """
 
     index: int
@@ -44,7 +49,9 @@ class ReportScan:
     actual_mm: np.ndarray | None = None
     systematic_mm: np.ndarray | None = None
     uncertainty_mm: np.ndarray | None = None
+    settings: str = ""
     extra: dict[str, Any] = field(default_factory=dict)
+    region_mm: tuple[float, float, float] | None = None
 
 
 _COLOURS = {"OK": "#2e7d32", "WARN": "#ef6c00", "RESCAN": "#c62828", "ERROR": "#6a1b9a"}
@@ -60,8 +67,10 @@ def _png(fig: Any) -> str:
 
 
 def deviation_map_png(points_mm: np.ndarray, panels: list[tuple[str, np.ndarray]], vmax_um: float | None = None,
-                      max_points: int = 15000, label: str = "|error| [µm]") -> str:
-    """Base64 PNG: one top-view (x, y) scatter per panel, coloured by the norm of the panel's (N, 3) mm values, µm."""
+                      max_points: int = 15000, label: str = "|error| [µm]",
+                      region_mm: tuple[float, float, float] | None = None) -> str:
+    """Base64 PNG: one top-view (x, y) scatter per panel, coloured by the norm of the panel's (N, 3) mm values, µm;
+    ``region_mm`` (x, y, radius, mm) circled in red on every panel (the worst region)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -79,6 +88,10 @@ def deviation_map_png(points_mm: np.ndarray, panels: list[tuple[str, np.ndarray]
         ok = np.isfinite(n) & np.isfinite(points_mm).all(axis=1)
         sc = ax.scatter(points_mm[ok, 0], points_mm[ok, 1], c=n[ok], s=2, cmap="viridis", vmin=0.0,
                         vmax=max(vmax_um, 1e-6), rasterized=True)
+        if region_mm is not None:
+            from matplotlib.patches import Circle
+
+            ax.add_patch(Circle(region_mm[:2], max(region_mm[2], 0.5), fill=False, edgecolor="red", linewidth=1.5))
         ax.set_title(title, fontsize=9)
         ax.set_xlabel("x [mm]")
         ax.set_ylabel("y [mm]")
@@ -144,9 +157,13 @@ def write_report(
     meta: dict[str, Any] | None = None,
     title: str = "xmetro demo: replay through a live xmetro_node",
     services_note: str = "not requested",
+    tolerance_m: float | None = None,
+    tolerance_note: str = "the node's <code>tolerance</code>",
 ) -> Path:
     """Write the HTML report and return its path. ``title``: the page's heading; ``services_note``: what the
-    ~/explain and ~/recommend_settings sections say when they were not asked (e.g. a report of a recorded bag).
+    ~/explain and ~/recommend_settings sections say when they were not asked (e.g. a report of a recorded bag);
+    ``tolerance_m``: the tolerance the decisions were made against (metres), stated beside them with
+    ``tolerance_note`` (HTML: where the value comes from).
 
     ``explain``: {"scan", "region", "feature_names", "feature_units", "axis_names", "mean_abs_shap_um" (F, A),
     "base_values_um", "n_points", "message"} or {"error": text}. ``recommend``: {"rows": [[label, value], ...],
@@ -174,8 +191,8 @@ def write_report(
         badge = f"<span class='v' style='background:{_COLOURS.get(vname, '#555')}'>{_e(vname)}</span>"
         flags = ", ".join(f"{k}:{v}" for k, v in q.get("flag_counts", {}).items() if v)
         rows.append([
-            s.index, _e(s.label), badge, q["error_code"], q["points_received"], q["points_valid"],
-            q["points_flagged"], f"{q['usable_fraction']:.3f}",
+            s.index, _e(s.label), _e(s.settings or "-"), badge, q["error_code"], q["points_received"],
+            q["points_valid"], q["points_flagged"], f"{q['usable_fraction']:.3f}",
             " / ".join(f"{v * 1e3:.2f}" for v in q["mean_abs_error_mm"]),
             " / ".join(f"{v * 1e3:.2f}" for v in q["p95_abs_error_mm"]),
             " / ".join("-" if not np.isfinite(v) else f"{v * 1e3:.2f}" for v in q.get("p95_uncertainty_mm",
@@ -183,21 +200,23 @@ def write_report(
             _e(" / ".join(str(v) for v in q.get("decisions", {}).values()) or "-"),
             "yes" if q["settings_defaulted"] else "no", _e(flags), _e(q["message"]),
         ])
-    parts.append(_table(["#", "scan", "verdict", "error", "received", "valid", "flagged (of valid)",
-                         "usable (of valid)",
+    parts.append(_table(["#", "scan", "settings (as judged)", "verdict", "error", "received", "valid",
+                         "flagged (of valid)", "usable (of valid)",
                          "mean |e| x/y/z [µm]", "p95 |e| x/y/z [µm]", "p95 U x/y/z [µm]",
                          "conforming / non-conforming / undecided", "defaulted", "flag counts", "message"],
-                        rows, raw_cols=frozenset({1, 2, 11, 13, 14})))
+                        rows, raw_cols=frozenset({1, 2, 3, 12, 14, 15})))
     rules = sorted({str(s.quality.get("decision_rule", "")) for s in scans} - {""})
     parts.append("<p>U: the expanded (95 %) uncertainty of each point's predicted deviation, per axis, calibrated "
-                 "per incidence and exposure (docs/learning.md). Decisions per ISO 14253-1"
+                 "per incidence and exposure (docs/uncertainty.md). Decisions per ISO 14253-1"
                  + (f" ({_e(', '.join(rules))} rule)" if rules else "")
-                 + " against the node's <code>tolerance</code>: conforming and non-conforming are proved with U, "
+                 + " against " + (f"the tolerance {tolerance_m * 1e6:.1f} µm ({tolerance_note})"
+                                  if tolerance_m is not None else "the node's <code>tolerance</code>")
+                 + ": conforming and non-conforming are proved with U, "
                  "undecided are neither. Valid: finite points inside the working volume; usable and flagged are "
                  "shares and counts of the valid points (the verdict's figures).</p>")
 
     parts.append("<h2>Deviation maps</h2><p>Top view (x, y) of each processed scan in its frame, coloured by the "
-                 "norm of the predicted deviation (nominal − measured, as the node publishes it) and, for "
+                 "norm of the predicted deviation (dx, dy, dz of ~/deviations) and, for "
                  "simulated scans whose artifact is known, the actual error of each point (noise included) and the "
                  "simulator's noise-free systematic error, on the same scale.</p>")
     for s in scans:
@@ -219,14 +238,16 @@ def write_report(
             if ok.any():
                 rmse = float(np.sqrt(np.mean(np.sum(d[ok] ** 2, axis=1)))) * 1e3
                 s.extra.setdefault("rmse vs systematic [µm]", f"{rmse:.2f}")
-        img = deviation_map_png(s.points_mm, panels)
+        img = deviation_map_png(s.points_mm, panels, region_mm=s.region_mm)
         extra = "; ".join(f"{k}: {v}" for k, v in s.extra.items())
+        if s.region_mm is not None:
+            extra = "; ".join(filter(None, [extra, "red circle: the worst region, explained and recommended below"]))
         parts.append(f"<h3>#{s.index} {_e(s.label)}</h3><p>{_e(extra)}</p>"
                      f"<img alt='deviation map {s.index}' src='data:image/png;base64,{img}'/>")
         if s.uncertainty_mm is not None and np.isfinite(s.uncertainty_mm).any():
             # U on its own scale: it is wider than the deviations by construction (95 % of the error about d).
             uimg = deviation_map_png(s.points_mm, [("U, 95 % (norm of ux, uy, uz)", s.uncertainty_mm)],
-                                     label="U [µm]")
+                                     label="U [µm]", region_mm=s.region_mm)
             parts.append(f"<img alt='uncertainty map {s.index}' src='data:image/png;base64,{uimg}'/>")
 
     parts.append("<h2>Why is the worst region bad? (~/explain, SHAP)</h2>")

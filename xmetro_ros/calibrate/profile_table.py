@@ -6,9 +6,9 @@ segment_sphere_arc`, no labels) finds and fits the arc of the sphere; the arc's 
 the laser plane (its centre and radius r are fitted per profile: a sphere's plane section has r = sqrt(R² − y0²)
 for the certified R and the unknown out-of-plane offset y0, whose sign the recording gives). Per point:
 
-- ``deviation`` = nominal − measured along the arc's outward normal (mm; the product's sign convention, the
-  study's eq. 8-15): −(|p − c| − r); per axis ``errors`` = deviation × (n_x, 0, n_z) — y carries no error, a
-  profile point lies in the laser plane by construction;
+- ``deviation`` = nominal − measured along the arc's outward normal (mm; the study's target sign, eq. 8-15;
+  published values carry its negative, docs/conventions.md): −(|p − c| − r); per axis ``errors`` = deviation ×
+  (n_x, 0, n_z) — y carries no error, a profile point lies in the laser plane by construction;
 - features (``PROFILE_FEATURES``), computable from the profile alone: ``u`` the position along the laser line
   (x, mm), ``w`` the range coordinate (z, mm), ``inc_plane`` the signed in-plane angle between the surface
   normal and the sensor axis (deg; the laser fan's origin and the camera are unknown for a profilometer known

@@ -91,7 +91,7 @@ def update_card(model_dir: str | Path, **blocks: Any) -> None:
 def session_options(threads: int = 1) -> Any:
     """ONNX Runtime session options of every model member: ``threads`` intra-op threads, one inter-op thread,
     sequential execution, all graph optimisations, memory pattern and CPU arena on (ONNX Runtime's defaults; the
-    alternatives measured by bench/bench_uncertainty.py were no faster, see docs/node.md)."""
+    alternatives measured by bench/bench_uncertainty.py were no faster, see docs/performance.md)."""
     import onnxruntime as ort
 
     opts = ort.SessionOptions()
@@ -535,7 +535,7 @@ def model_scanner_id(card: dict[str, Any]) -> str:
 
 def load_pose_model(path: str | Path, primary: ModelSet, threads: int = 1) -> ModelSet:
     """The second ("pose") model set at ``path``, to judge next to ``primary`` (``ScanHandler.route``) and to search
-    with (docs/node.md, "Two model sets"): it must take the primary's features and be trained for the same scanner.
+    with (docs/services.md, "Two model sets"): it must take the primary's features and be trained for the same scanner.
     Raises ModelLoadError (or what ``ModelSet.load`` raises) when it cannot."""
     pm = ModelSet.load(path, threads=threads)
     if list(pm.feature_names) != list(primary.feature_names):

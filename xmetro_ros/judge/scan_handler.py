@@ -12,7 +12,8 @@ Without a calibration U is NaN and every predicted point carries NO_UNCERTAINTY 
 guard-banded rule); the summary's message says why.
 
 Units: millimetres inside (points, deviations, tolerance_mm); the node converts to metres on its topics.
-Deviations are predicted errors ``nominal − measured`` per axis, so ``measured + deviation`` is the corrected point.
+Deviations here are the model's target, predicted errors ``nominal − measured`` per axis, so ``measured + deviation``
+is the corrected point; the node publishes them as d = measured − nominal (``scan.targets.published_deviation``).
 """
 
 from __future__ import annotations
@@ -100,7 +101,7 @@ def check_deadline(deadline: float | None, stage: str) -> None:
     """Abandon a scan whose processing passed ``deadline`` (``time.monotonic()`` seconds; None = no bound).
 
     Called between stages: Python cannot interrupt a running numpy / ONNX Runtime call, so a stage already under
-    way finishes first (see docs/node.md, watchdog).
+    way finishes first (see docs/scan-processing.md, watchdog).
 
     Raises:
         ScanError("TIMEOUT"): past the deadline.
@@ -203,7 +204,7 @@ NO_DECISION = 255
 def warm_up() -> float:
     """Compile, or load from numba's on-disk cache, the compiled kernels of the judge path (grid pre-processing,
     summary statistics) so the first scan does not pay for it: 0.5-1 s per process from numba's disk cache, 6-30 s
-    (machine load) on the very first run of an installation (docs/node.md). Returns the seconds taken."""
+    (machine load) on the very first run of an installation (docs/performance.md). Returns the seconds taken."""
     import time
 
     from ..preprocess import curvature, grid_kernels

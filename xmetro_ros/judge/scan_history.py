@@ -156,8 +156,9 @@ def select_rows(judged: JudgedScan, indices: np.ndarray, center_mm: np.ndarray |
 
 def explain_rows(model_set: Any, judged: JudgedScan, rows: np.ndarray, axes: tuple[int, ...],
                  output: str = "error") -> dict[str, Any]:
-    """SHAP explanation of the published predictions of ``rows`` of ``judged`` (mm): base (A,), shap (P, F', A),
-    predictions (P, A) (= the published deviations), player values X (P, F'), names and units of the F' players,
+    """SHAP explanation of the predictions of ``rows`` of ``judged`` (mm): base (A,), shap (P, F', A), predictions
+    (P, A) (the model's target t = nominal − measured; ``~/explain`` publishes them with the sign of the published
+    deviations, ``scan.targets.published_deviation``), player values X (P, F'), names and units of the F' players,
     mean |SHAP| (F', A) over the explained points, point indices (P,).
 
     The players are the model's features, plus ``set_context`` (the other points of the point's PointNet set; its

@@ -1,11 +1,12 @@
 """The shapes a model set was calibrated on, as a range of the surface's mean curvature (card ``domain_shape``).
 
 The per-point features carry no shape: a model trained on spheres and cylinders extrapolates silently to a concave
-pocket or a sharp edge, and its intervals fail there first (docs/parts.md). The judge therefore also compares each
-point's mean curvature (:mod:`xmetro_ros.preprocess.curvature`) with the range the calibration clouds covered —
-those clouds are the training campaign simulated again (same artifacts, settings and poses, new noise), so their
-shapes are the training shapes. Points outside ``[lo − m, hi + m]`` (m = ``domain_margin`` × (hi − lo)) are flagged
-OUT_OF_DOMAIN; U is not widened there (nothing says by how much), the flag says the interval is not vouched for.
+pocket or a sharp edge, and its intervals fail there first (docs/parts-generalisation.md). The judge therefore also
+compares each point's mean curvature (:mod:`xmetro_ros.preprocess.curvature`) with the range the calibration clouds
+covered — those clouds are the training campaign simulated again (same artifacts, settings and poses, new noise), so
+their shapes are the training shapes. Points outside ``[lo − m, hi + m]`` (m = ``domain_margin`` × (hi − lo)) are
+flagged OUT_OF_DOMAIN; U is not widened there (nothing says by how much), the flag says the interval is not vouched
+for.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Calibrated 95 % intervals per point and axis: split-conformal calibration by cloud, the multivariate domain,
 and the interval metrics (coverage, width, sharpness against the simulator's oracle interval, rank correlation).
 
-Method (docs/learning.md, "Uncertainty"):
+Method (docs/uncertainty.md):
 
 * σ̂: the model's spread per point and axis (the PointNet spread head, ONNX output ``log_sigma``; 1 mm for members
   without one, which makes the scores plain absolute residuals).

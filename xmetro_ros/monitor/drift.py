@@ -1,8 +1,9 @@
 """Drift detection on reference-artifact scans re-scanned in the cell (ROS-free core; docs/closed-loop.md).
 
 A cell re-scans a reference artifact (a sphere in the fixture) every so often. For each such *reference scan* the
-caller gives, per point, the actual error (nominal − measured, mm), the model's prediction (mm) and, when the model
-gives one, the half-width U of its interval (mm, prediction ± U). ``DriftMonitor.update`` reduces the scan to three
+caller gives, per point, the actual error and the model's prediction in one sign (mm; the node's reference check
+gives both as published deviations, measured − nominal) and, when the model gives one, the half-width U of its
+interval (mm, prediction ± U). ``DriftMonitor.update`` reduces the scan to three
 statistics and tracks each over the stream of reference scans:
 
 - ``residual_mean``: mean of the residual r = actual − predicted (a bias the model does not predict);

@@ -1,8 +1,9 @@
 """In-line monitoring on reference scans (ROS-free core; docs/closed-loop.md, "In-line monitoring in the node").
 
 A cell re-scans a reference artifact — a certified sphere in a fixture — every so often. For each such *reference
-scan* judged by the node, :class:`ReferenceChecker` compares, point by point, the **actual** error (nominal −
-measured against the certified sphere, mm, scan frame) with the model's prediction and its interval U, and feeds
+scan* judged by the node, :class:`ReferenceChecker` compares, point by point, the **actual** deviation (measured −
+nominal against the certified sphere, mm, scan frame: the sign the node publishes, ``scan.targets``'
+``published_deviation``) with the model's prediction in that sign and its interval U, and feeds
 the per-scan statistics to a :class:`xmetro_ros.monitor.drift.DriftMonitor` (EWMA + CUSUM on the residual's mean and
 RMS and
 on interval coverage). When the monitor says WARN, a screening names the candidate variable most associated with
@@ -29,7 +30,7 @@ import numpy as np
 from scipy.stats import spearmanr
 
 from ..scan.artifacts import Sphere
-from ..scan.targets import FitError, errors_with_fit
+from ..scan.targets import FitError, errors_with_fit, published_deviation
 from .drift import DriftConfig, DriftMonitor, DriftState
 
 __all__ = ["CANDIDATE_ALPHA", "CANDIDATE_MIN_RHO", "ReferenceChecker", "ReferenceResult", "ReferenceSpec",
@@ -142,7 +143,9 @@ class ReferenceChecker:
 
         Args:
             points_mm: (M, 3) measured points (scan frame, mm) that the model judged.
-            predicted_mm: (M, 3) predicted error nominal − measured per axis (NaN rows: no prediction).
+            predicted_mm: (M, 3) the model's predictions, its target nominal − measured per axis (NaN rows: no
+                prediction); actual and predicted are compared, and the residual reported, as published
+                deviations (measured − nominal).
             U_mm: (M, 3) expanded uncertainty per axis, or None (model without calibration).
             candidates: {name: (M,)} variables for the screening on WARN, or a callable giving them (computed only
                 on WARN, e.g. ``lambda: live_candidates(prepared)``).
@@ -155,10 +158,13 @@ class ReferenceChecker:
         if n_ok < 3:
             return ReferenceResult("MISMATCH", n_mon, n_ok, message=f"reference scan: only {n_ok} predicted points")
         try:
-            actual, used = errors_with_fit(p[ok], self.spec.sphere, self.spec.fit_center)
+            target, used = errors_with_fit(p[ok], self.spec.sphere, self.spec.fit_center)
         except (FitError, ValueError) as e:
             return ReferenceResult("MISMATCH", n_mon, n_ok, message=f"reference scan does not fit the declared "
                                                                    f"sphere: {e}")
+        # In the published sign from here on: residual = actual − predicted deviation (measured − nominal).
+        actual = published_deviation(target)
+        pred = published_deviation(pred)
         nrm = used.normals(used.project(p[ok]))
         a_n = np.einsum("ij,ij->i", actual, nrm)
         med = float(np.median(np.abs(a_n)))

@@ -1,11 +1,13 @@
 """Judge a scan against its part's CAD: the deviation map measured − CAD before and after the model's compensation,
 with the per-point uncertainty. Millimetres, scan frame (the CAD placed by its pose part → scan).
 
-For each judged point p (finite prediction e = predicted nominal − measured, per axis, and U per axis):
+For each judged point p (finite prediction e = predicted nominal − measured, per axis: the model's target, i.e.
+−d for the published deviation d of ``~/deviations``; and U per axis):
 
 - q, n: closest point on the CAD and the CAD's outward normal there;
 - ``before`` = (p − q)·n: the raw deviation (positive = material beyond the CAD surface);
-- ``after`` = (p + e − q')·n': the same for the compensated point p + e (its own closest point q', normal n');
+- ``after`` = (p + e − q')·n': the same for the compensated point p + e = p − d, ``~/corrected`` (its own closest
+  point q', normal n');
 - ``u_normal`` = Σ_k |n_k|·U_k: U carried onto the normal (exact when the error lies along the normal, as the
   study's radial projection makes it; an upper bound otherwise, by the triangle inequality).
 

@@ -246,7 +246,7 @@ def _pct(x: float | None) -> str:
 
 
 def markdown(summary: dict[str, Any]) -> str:
-    """The tables of docs/parts.md from a ``run_study`` summary."""
+    """The tables of docs/parts-generalisation.md from a ``run_study`` summary."""
     lines = [f"Model set `{summary['model']}`, seed {summary['seed']}, form error ±{summary['form_um']:g} µm.", "",
              "| part | settings | points | MAE model / oracle X, Y, Z (µm) | coverage all / in / out of domain "
              "| out-of-domain share (points / misses) | CAD known pose: MAE, p95 before → after (µm) | factor MAE, p95 "
@@ -293,7 +293,7 @@ def markdown(summary: dict[str, Any]) -> str:
 
 
 def _condense(summary: dict[str, Any]) -> dict[str, Any]:
-    """The headline figures per part and settings (what docs/parts.md quotes)."""
+    """The headline figures per part and settings (what docs/parts-generalisation.md quotes)."""
     out: dict[str, Any] = {k: v for k, v in summary.items() if k != "parts"}
     out["parts"] = {}
     for name, rows in summary["parts"].items():

@@ -12,7 +12,7 @@ Why this measure: the per-point features describe the incidence, the view, the s
 shape around the point; a model trained on spheres and cylinders has seen only convex surfaces with 1/R of its
 artifacts. The judge compares H with the range its model's calibration clouds covered (card ``domain_shape``,
 :func:`xmetro_ros.learn.shape_domain.fit_shape_domain`): a concave pocket or a sharp edge falls outside. Measured on
-the mesh parts (docs/parts.md): the intervals' misses concentrate there.
+the mesh parts (docs/parts-generalisation.md): the intervals' misses concentrate there.
 
 Noise: about 1 mm apart the normals' own noise (their 5 × 5 fit) moves H by ~0.01 /mm at 0.1 ms exposure; the
 sphere Ø35 reads 0.056 (1/R = 0.057) with 90 % of its points within ±0.01. Unorganized clouds: NaN (no grid).

@@ -25,6 +25,7 @@ from ..monitor.reference_check import ReferenceChecker, ReferenceResult, Referen
 from ..msg import ReferenceCheck, ScannerSettings, ScanQuality
 from ..scan.geometry import HeadPose
 from ..scan.scanner import ScannerModel, ScanSettings, SettingsError
+from ..scan.targets import published_deviation
 from ..srv import Explain, RecommendSettings
 from .cloud import CloudFormatError, validate_cloud, xyz_fields
 from .convert import cloud_to_scan, m_to_mm, pose7_to_matrix_mm, settings_from_msg, settings_to_msg, stamp_to_ns
@@ -301,9 +302,12 @@ class XmetroCore:
         # x, y, z exactly as received (float32 metres), one point per (kept) input point.
         xyz, _ = xyz_fields(msg)
         points_m = np.asarray(xyz if keep is None else xyz[keep], dtype=np.float32)
-        dev_cloud = deviations_cloud(msg.header, points_m, res.deviations, res.flags, out_h, out_w,
+        # The one place the node's sign turns: the model's target t = nominal − measured is published as the
+        # deviation d = measured − nominal (docs/conventions.md, "Errors"); ~/corrected = measured − d.
+        published = published_deviation(res.deviations)
+        dev_cloud = deviations_cloud(msg.header, points_m, published, res.flags, out_h, out_w,
                                      unc_mm=res.uncertainty)
-        corrected = corrected_cloud(msg, res.deviations, keep, out_h, out_w)
+        corrected = corrected_cloud(msg, published, keep, out_h, out_w)
         cad_msg, cad_pose, cad_error, cad_log = self._cad_map(msg, points_m, res)
         self.history.add(JudgedScan(
             stamp_ns=stamp_ns, frame_id=msg.header.frame_id, n_points=out_h * out_w,

@@ -8,7 +8,10 @@ Level (the most severe reason wins; the message lists the reasons, most severe f
 - ERROR: no usable model (degraded start); the worker is stalled (a scan past ``max_processing_time`` that did not
   come back, or an abandoned worker thread still running); the last scan could not be processed (ScanQuality
   ERROR); scans arrive but no ScannerSettings ever did (every scan runs on the configured defaults);
-- WARN: no scan for ``scan_timeout`` seconds (stale input: a dead scanner or a lost connection; also before the
+- WARN: scans lost in transport in the last ``loss_warn_period`` seconds (default ``LOSS_HOLD_S``; DDS sample-lost
+  events, or gaps in a publisher's sequence numbers), with the likely cause and its fix for the subscription's
+  reliability;
+  no scan for ``scan_timeout`` seconds (stale input: a dead scanner or a lost connection; also before the
   first scan); the last scan was judged WARN or RESCAN, or its settings were defaulted; the reference drift monitor
   says WARN (held until ``~/reset_reference``), or the last reference scan did not show the declared sphere; the
   configured pose model set (``pose_model_dir``) could not be used (the primary judges every scan);
@@ -30,10 +33,12 @@ from typing import Any
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
-__all__ = ["FREQUENCY_WINDOW_S", "TASK_NAME", "DiagnosticsState", "status_name"]
+__all__ = ["FREQUENCY_WINDOW_S", "LOSS_HOLD_S", "TASK_NAME", "DiagnosticsState", "lost_scans_reason", "status_name"]
 
 TASK_NAME = "scan processing"
 FREQUENCY_WINDOW_S = 10.0
+#: A loss keeps /diagnostics at WARN this long (s) by default: long enough for a person or a monitor to see it.
+LOSS_HOLD_S = 60.0
 OK, WARN, ERROR = 0, 1, 2
 _VERDICT_LEVEL = {0: OK, 1: WARN, 2: WARN, 3: ERROR}
 # ReferenceCheck.STATE_* (kept as numbers: this module builds no xmetro_ros message)
@@ -72,6 +77,9 @@ class DiagnosticsState:
         self.dropped = 0
         self.lost = 0
         self.dds_lost_events = 0
+        self.scan_reliability = "best_effort"  # the scan subscription's, set by the node (reliability: auto)
+        self.loss_warn_period = LOSS_HOLD_S    # the node's parameter of that name
+        self._last_loss: float | None = None
         self.timeouts = 0
         self.workers_abandoned = 0
         self.settings_received = 0
@@ -118,6 +126,8 @@ class DiagnosticsState:
                 self.dds_lost_events += int(n)
             else:
                 self.lost += int(n)
+            if n > 0:
+                self._last_loss = time.monotonic()
 
     def on_settings(self) -> None:
         with self._lock:
@@ -186,6 +196,8 @@ class DiagnosticsState:
         if since > self.scan_timeout:
             what = "no scan for" if self._last_scan is not None else "no scan received in"
             out.append((WARN, f"stale: {what} {since:.1f} s (scan_timeout {self.scan_timeout:g} s)"))
+        if self._last_loss is not None and now - self._last_loss <= self.loss_warn_period:
+            out.append((WARN, lost_scans_reason(self.lost, self.dds_lost_events, self.scan_reliability)))
         if self.pose_model_error:
             out.append((WARN, self.pose_model_error))
         if self.cad_error:
@@ -258,6 +270,23 @@ class DiagnosticsState:
         arr.status = [st]
         self.published_level = lvl
         return arr
+
+
+def lost_scans_reason(gaps: int, dds_events: int, reliability: str) -> str:
+    """The /diagnostics reason for scans lost before the node's callback, with the fix a user can apply.
+
+    Args:
+        gaps: scans missing from publishers' sequence numbers; dds_events: DDS sample-lost events (Fast DDS reports
+            them for samples a best-effort reader could not reassemble); reliability: the scan subscription's.
+    """
+    what = f"scans lost in transport ({gaps} by sequence gaps, {dds_events} DDS sample-lost events)"
+    if reliability == "best_effort":
+        return (f"{what}: a best-effort subscription loses a whole cloud when one fragment is dropped, as Fast DDS's "
+                "default transports do from a few hundred kB; publish the scans reliable (reliability auto "
+                "follows) or give both processes the shared-memory profile config/fastdds_localhost.xml "
+                "(FASTDDS_DEFAULT_PROFILES_FILE) — docs/dds.md")
+    return (f"{what}: the reliable subscription's queue (keep last 5) overflowed: scans arrive faster than the "
+            "node takes them")
 
 
 def _level_value(lvl: int) -> Any:

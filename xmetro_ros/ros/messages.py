@@ -14,6 +14,7 @@ from geometry_msgs.msg import Quaternion
 
 from ..judge import flags as fl
 from ..msg import ReferenceCheck, ScannerSettings, ScanQuality, SettingsCandidate
+from ..scan.targets import published_deviation
 from ..srv import Explain, RecommendSettings
 from .convert import mm_to_m, settings_to_msg
 
@@ -106,7 +107,12 @@ def failed_response(response: Any, message: str) -> Any:
 
 
 def explain_response(result: dict[str, Any], model_id: str, message: str) -> Explain.Response:
-    """``~/explain``'s answer from :func:`xmetro_ros.judge.scan_history.explain_rows`'s result (mm → m)."""
+    """``~/explain``'s answer from :func:`xmetro_ros.judge.scan_history.explain_rows`'s result (mm → m).
+
+    Explaining the error, the base values, SHAP values and predictions are those of the published deviation
+    d = measured − nominal (``published_deviation`` of the model's target: every one flips sign; mean |SHAP| does
+    not); explaining U, they are U's (unsigned, unchanged)."""
+    signed = published_deviation if str(result.get("output", "error")) == "error" else np.asarray
     resp = Explain.Response()
     resp.model_id = model_id
     resp.success = True
@@ -114,11 +120,11 @@ def explain_response(result: dict[str, Any], model_id: str, message: str) -> Exp
     resp.feature_names = result["feature_names"]
     resp.feature_units = result["feature_units"]
     resp.axis_names = result["axis_names"]
-    resp.base_values = mm_to_m(result["base_values"]).tolist()
+    resp.base_values = mm_to_m(signed(result["base_values"])).tolist()
     resp.point_indices = result["point_indices"].astype(np.uint32).tolist()
-    resp.shap_values = mm_to_m(result["shap"]).ravel().tolist()
+    resp.shap_values = mm_to_m(signed(result["shap"])).ravel().tolist()
     resp.feature_values = result["features"].ravel().tolist()
-    resp.predictions = mm_to_m(result["predictions"]).ravel().tolist()
+    resp.predictions = mm_to_m(signed(result["predictions"])).ravel().tolist()
     resp.output_name = str(result.get("output", "error"))
     resp.mean_abs_shap = mm_to_m(result["mean_abs_shap"]).ravel().tolist()
     return resp

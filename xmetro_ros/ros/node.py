@@ -3,8 +3,9 @@
 Topics (names relative to the node; ``~`` = the node's private namespace):
 
 - sub ``scan`` (sensor_msgs/PointCloud2, metres; organized or not; float x, y, z required, other fields kept):
-  sensor-data QoS (keep last 5, volatile), best-effort by default (matches best-effort drivers and reliable
-  publishers alike; parameter ``reliability``).
+  sensor-data QoS (keep last 5, volatile); parameter ``reliability``: ``auto`` (default) follows the topic's
+  publishers as rosbag2's recorder does (reliable when every publisher is reliable, so a large cloud's lost fragments
+  are resent; else best-effort, which matches every publisher), or fixed ``best_effort`` / ``reliable``.
 - sub ``scanner_settings`` (xmetro_ros/ScannerSettings, reliable, depth 10) twice: transient-local (history of a
   latched publisher) and volatile (``ros2 topic pub``, bags replayed without QoS metadata), one handler, a message
   received on both stored once. Each scan uses the latest settings stamped at or before it (last
@@ -13,9 +14,9 @@ Topics (names relative to the node; ``~`` = the node's private namespace):
   ``qos_overrides./scan.subscription.reliability``, ``qos_overrides./scanner_settings.subscription.durability``,
   ``qos_overrides./scanner_settings.subscription_volatile.reliability`` (read at start / on activate).
 - pub ``~/deviations`` (PointCloud2: x, y, z, dx, dy, dz, dnorm, ux, uy, uz float32 metres, flags uint16,
-  point_step 44 with every field aligned; one point per input point, same height × width; predicted error =
-  nominal − measured, U its expanded uncertainty at 95 %), ``~/corrected`` (the input cloud, same fields, with
-  x, y, z + predicted error, residual uncertainty U; points without a prediction unchanged), ``~/quality``
+  point_step 44 with every field aligned; one point per input point, same height × width; predicted deviation d =
+  measured − nominal, U its expanded uncertainty at 95 %), ``~/corrected`` (the input cloud, same fields, with
+  x, y, z − d, residual uncertainty U; points without a prediction unchanged), ``~/quality``
   (ScanQuality), ``/diagnostics`` (DiagnosticArray, every ``diagnostics_period`` and at once on a level change).
 - sub ``reference_scan`` (PointCloud2, as ``scan``): scans of the reference sphere (``reference_radius``,
   ``reference_center``): judged like any scan, then checked against the certified sphere and fed to the drift
@@ -67,9 +68,14 @@ __all__ = [
     "XmetroWiring",
     "main",
     "output_qos",
+    "reliability_for_publishers",
     "scan_qos",
     "settings_qos",
 ]
+
+#: How often ``reliability: auto`` looks at the scan topic's publishers (s).
+AUTO_QOS_PERIOD_S = 1.0
+
 
 def scan_qos(reliability: str = "best_effort", depth: int = 5) -> QoSProfile:
     """Sensor-data QoS of the ``scan`` subscription. Best-effort (the default) matches best-effort drivers and
@@ -77,6 +83,16 @@ def scan_qos(reliability: str = "best_effort", depth: int = 5) -> QoSProfile:
     rel = ReliabilityPolicy.RELIABLE if reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=rel,
                       durability=DurabilityPolicy.VOLATILE)
+
+
+def reliability_for_publishers(offered: list[str]) -> str:
+    """``reliability: auto``'s choice for the scan subscription from the reliability each publisher of the topic
+    offers (``"reliable"`` / ``"best_effort"``), rosbag2's recorder rule: reliable only when there are publishers and
+    every one of them is reliable (a reliable reader never matches a best-effort writer); best effort otherwise.
+
+    A reliable subscription to a reliable publisher gets every fragment of a large cloud resent; a best-effort one
+    loses the whole cloud when one fragment is dropped (on Fast DDS's default transports, from a few hundred kB)."""
+    return "reliable" if offered and all(o == "reliable" for o in offered) else "best_effort"
 
 
 def settings_qos(durability: DurabilityPolicy = DurabilityPolicy.TRANSIENT_LOCAL) -> QoSProfile:
@@ -116,6 +132,8 @@ class XmetroWiring(ScanWorker, ServiceHandlers):
         self._inputs: list[Any] = []
         self._outputs: list[Any] = []
         self.timer_diag: Any = None
+        self.timer_qos: Any = None
+        self._auto_qos = False
 
     def _load_core(self) -> XmetroCore:
         """Read and check the parameters, load the model set and the scanner (XmetroCore)."""
@@ -134,6 +152,7 @@ class XmetroWiring(ScanWorker, ServiceHandlers):
                                      cad_error=core.cad_error,
                                      pose_model_id=core.pose_model.id if core.pose_model is not None else "",
                                      pose_model_error=core.pose_model_error)
+        self.diag.loss_warn_period = float(values["loss_warn_period"])
         self._qmax = int(values["queue_depth"])
         self.core = core
         return core
@@ -156,15 +175,17 @@ class XmetroWiring(ScanWorker, ServiceHandlers):
         assert self.core is not None
         values = self.core.values
         overrides = QoSOverridingOptions.with_default_policies()
-        try:
-            self.sub_scan = self.create_subscription(
-                PointCloud2, "scan", self._on_scan, scan_qos(values["reliability"]), callback_group=self._work_group,
-                qos_overriding_options=overrides, event_callbacks=self._scan_event_callbacks())
-        except Exception as e:  # a middleware without the message-lost event: sequence gaps still count losses
-            self.get_logger().warning(f"message-lost events unavailable ({type(e).__name__}: {e})")
-            self.sub_scan = self.create_subscription(
-                PointCloud2, "scan", self._on_scan, scan_qos(values["reliability"]), callback_group=self._work_group,
-                qos_overriding_options=overrides)
+        asked = "best_effort" if values["reliability"] == "auto" else values["reliability"]
+        self.sub_scan = self._scan_subscription(asked, overrides)
+        # `auto`: follow the publishers found (checked every second); a qos_overrides parameter given by the user
+        # (command line, params file) wins, as does any override that changed what was asked.
+        topic = self.sub_scan.topic_name
+        overridden = (f"qos_overrides.{topic}.subscription.reliability" in getattr(self, "_parameter_overrides", {})
+                      or self.sub_scan.qos_profile.reliability != scan_qos(asked).reliability)
+        self._auto_qos = values["reliability"] == "auto" and not overridden
+        if self.diag is not None:
+            self.diag.scan_reliability = ("reliable" if self.sub_scan.qos_profile.reliability
+                                          == ReliabilityPolicy.RELIABLE else "best_effort")
         # Reference scans: their own topic (a cell publishes or remaps its reference-artifact scans there), the same
         # QoS and queue as the scans; judged like any scan, then checked against the reference sphere.
         self.sub_reference = self.create_subscription(
@@ -203,7 +224,44 @@ class XmetroWiring(ScanWorker, ServiceHandlers):
         self._worker = self._start_worker()
         self.timer_diag = self.create_timer(float(values["diagnostics_period"]), self._publish_diag,
                                             callback_group=self._srv_group)
+        if self._auto_qos:
+            self._adapt_scan_qos()
+            self.timer_qos = self.create_timer(AUTO_QOS_PERIOD_S, self._adapt_scan_qos, callback_group=self._srv_group)
         self._publish_diag()
+
+    def _scan_subscription(self, reliability: str, overrides: QoSOverridingOptions | None) -> Any:
+        """The ``scan`` subscription with ``reliability``; ``overrides`` declares (first time) and applies the
+        ``qos_overrides`` parameters."""
+        try:
+            return self.create_subscription(
+                PointCloud2, "scan", self._on_scan, scan_qos(reliability), callback_group=self._work_group,
+                event_callbacks=self._scan_event_callbacks(), qos_overriding_options=overrides)
+        except Exception as e:  # a middleware without the message-lost event: sequence gaps still count losses
+            self.get_logger().warning(f"message-lost events unavailable ({type(e).__name__}: {e})")
+            return self.create_subscription(
+                PointCloud2, "scan", self._on_scan, scan_qos(reliability), callback_group=self._work_group,
+                qos_overriding_options=overrides)
+
+    def _adapt_scan_qos(self) -> None:
+        """``reliability: auto``: re-create the scan subscription when the publishers' reliability calls for the
+        other policy (:func:`reliability_for_publishers`). The swap takes milliseconds; a scan sent meanwhile is
+        counted lost by its sequence gap."""
+        sub = self.sub_scan
+        if sub is None or sub not in self._inputs:
+            return
+        offered = ["reliable" if i.qos_profile.reliability == ReliabilityPolicy.RELIABLE else "best_effort"
+                   for i in self.get_publishers_info_by_topic(sub.topic_name)]
+        want = reliability_for_publishers(offered)
+        have = "reliable" if sub.qos_profile.reliability == ReliabilityPolicy.RELIABLE else "best_effort"
+        if want == have:
+            return
+        self.destroy_subscription(sub)
+        self.sub_scan = self._scan_subscription(want, None)
+        self._inputs[self._inputs.index(sub)] = self.sub_scan
+        if self.diag is not None:
+            self.diag.scan_reliability = want
+        self.get_logger().info(f"scan subscription now {want} to match its {len(offered)} publisher(s) "
+                               "(reliability: auto)")
 
     def _destroy_inputs(self) -> None:
         """Inverse of :meth:`_create_inputs`: no scan is taken or processed afterwards (queued ones are dropped)."""
@@ -218,6 +276,9 @@ class XmetroWiring(ScanWorker, ServiceHandlers):
         if self.timer_diag is not None:
             self.destroy_timer(self.timer_diag)
             self.timer_diag = None
+        if self.timer_qos is not None:
+            self.destroy_timer(self.timer_qos)
+            self.timer_qos = None
         self._stop_worker()
 
     def _destroy_outputs(self) -> None:
@@ -250,6 +311,8 @@ class XmetroWiring(ScanWorker, ServiceHandlers):
             core.update_values(ours)
             if "scan_timeout" in ours and self.diag is not None:
                 self.diag.scan_timeout = float(ours["scan_timeout"])
+            if "loss_warn_period" in ours and self.diag is not None:
+                self.diag.loss_warn_period = float(ours["loss_warn_period"])
         if ours:
             self.get_logger().info(f"parameters changed: {ours}")
         return SetParametersResult(successful=True)

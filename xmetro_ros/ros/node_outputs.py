@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from ..scan.targets import study_target
 from .convert import m_to_mm, stamp_to_ns
 
 __all__ = [
@@ -316,8 +317,13 @@ def compare_outputs(a: list[OutputSet], b: list[OutputSet], tol: Tolerance = EXA
 
 
 def deviation_arrays(msg: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(points (N, 3) mm, predicted deviations (N, 3) mm, flags (N,) uint16) of a ``~/deviations`` cloud."""
+    """(points (N, 3) mm, predictions (N, 3) mm, flags (N,) uint16) of a ``~/deviations`` cloud.
+
+    The predictions come back in the package's internal sign, the model's target t = nominal − measured
+    (``scan.targets.study_target`` of the published dx, dy, dz = measured − nominal): the sign of the simulator's
+    errors (``Artifact.errors``) and of what ``parts.cad_judge.cad_deviation`` takes, so that our own tools compare
+    like with like. A person reads the published sign; this is the one reader that turns it back."""
     a = cloud_arrays(msg)
     pts = m_to_mm(np.stack([a["x"], a["y"], a["z"]], axis=1))
-    dev = m_to_mm(np.stack([a["dx"], a["dy"], a["dz"]], axis=1))
+    dev = study_target(m_to_mm(np.stack([a["dx"], a["dy"], a["dz"]], axis=1)))
     return pts, dev, np.asarray(a["flags"], dtype=np.uint16)

@@ -1,14 +1,16 @@
 """The node's two output clouds, built byte by byte into buffers the messages adopt (no extra copies).
 
-- ``~/deviations``: one record per (kept) input point, x, y, z as received and the predicted error dx, dy, dz,
-  dnorm, their expanded uncertainty (95 %) ux, uy, uz (float32, metres), flags (uint16), 2 bytes of padding:
+- ``~/deviations``: one record per (kept) input point, x, y, z as received and the predicted deviation dx, dy, dz
+  (d = measured − nominal, ``scan.targets.published_deviation`` of the model's target), dnorm, their expanded
+  uncertainty (95 %) ux, uy, uz (float32, metres), flags (uint16), 2 bytes of padding:
   point_step 44, every field at an offset aligned to its size in every point;
 - ``~/cad_deviations`` (with a CAD part configured): one record per judged point, x, y, z as received, the signed
-  deviation from the CAD along its outward normal ``before`` and ``after`` the compensation, ``u_normal`` (U
+  deviation measured − CAD along its outward normal ``before`` and ``after`` the compensation, ``u_normal`` (U
   carried onto the normal), float32 metres, ``index`` (uint32: the point's flat index in ``~/deviations``), flags
   (uint16), 2 bytes of padding: point_step 32;
-- ``~/corrected``: the input cloud (same fields, byte order and point layout) with x, y, z + predicted error; the
-  residual uncertainty of each corrected coordinate is U (ux, uy, uz of ``~/deviations``).
+- ``~/corrected``: the input cloud (same fields, byte order and point layout) with x, y, z − d (measured minus
+  the predicted deviation); the residual uncertainty of each corrected coordinate is U (ux, uy, uz of
+  ``~/deviations``).
 
 Frames: the input cloud's (``header.frame_id``); lengths in metres as on every topic.
 """
@@ -66,9 +68,10 @@ def warm_up() -> None:
 
 def deviations_cloud(header: Any, points_m: np.ndarray, dev_mm: np.ndarray, flags: np.ndarray, height: int,
                      width: int, unc_mm: np.ndarray | None = None) -> PointCloud2:
-    """``~/deviations``: ``points_m`` (N, 3) float32 metres as received, ``dev_mm`` (N, 3) predicted error in mm
-    (NaN where none), ``unc_mm`` (N, 3) its expanded uncertainty U (95 %) in mm (NaN where none; None: all NaN),
-    ``flags`` (N,) uint16; ``height × width = N``. Layout :data:`DEVIATIONS_FIELDS`, 44 bytes a point."""
+    """``~/deviations``: ``points_m`` (N, 3) float32 metres as received, ``dev_mm`` (N, 3) predicted deviation
+    d = measured − nominal in mm (NaN where none), ``unc_mm`` (N, 3) its expanded uncertainty U (95 %) in mm
+    (NaN where none; None: all NaN), ``flags`` (N,) uint16; ``height × width = N``. Layout
+    :data:`DEVIATIONS_FIELDS`, 44 bytes a point."""
     n = int(height) * int(width)
     if points_m.shape[0] != n or dev_mm.shape[0] != n or flags.shape[0] != n:
         raise ValueError(f"height {height} × width {width} != {points_m.shape[0]} points")
@@ -127,17 +130,20 @@ def cad_cloud(header: Any, points_m: np.ndarray, index: np.ndarray, before_mm: n
 
 def corrected_cloud(msg: PointCloud2, dev_mm: np.ndarray, keep: np.ndarray | None, height: int,
                     width: int) -> PointCloud2:
-    """The input cloud (same fields and byte order) with x, y, z + predicted error; unpredicted points unchanged.
+    """The input cloud (same fields and byte order) with x, y, z − d (d: the published deviation, measured −
+    nominal); unpredicted points unchanged.
 
     Args:
         msg: the input cloud (already validated).
-        dev_mm: (N, 3) predicted error, mm, one row per kept point (NaN where none).
+        dev_mm: (N, 3) predicted deviation d = measured − nominal (as on ``~/deviations``), mm, one row per kept
+            point (NaN where none).
         keep: indices of the kept input points (decimated scans), None for all.
         height, width: shape of the output (``height × width = N``).
     """
-    # float32 arithmetic on purpose: the published clouds are float32 and must stay bit-identical to the goldens.
-    add = dev_mm.astype(np.float32) * np.float32(M_PER_MM)
-    add[~np.isfinite(add)] = 0.0
+    # float32 arithmetic on purpose: the published clouds are float32 and must stay bit-identical to the goldens:
+    # corrected = measured − d, added as −d (= the model's target t exactly: the sign flip is exact).
+    shift = np.negative(dev_mm.astype(np.float32) * np.float32(M_PER_MM))
+    shift[~np.isfinite(shift)] = 0.0
     by = {f.name: f for f in msg.fields}
     ps = int(msg.point_step)
     fx = by["x"]
@@ -157,7 +163,7 @@ def corrected_cloud(msg: PointCloud2, dev_mm: np.ndarray, keep: np.ndarray | Non
         else:
             rec[:] = src
         c = fx.offset // 4
-        rec[:, c:c + 3] += add
+        rec[:, c:c + 3] += shift
         del rec
     elif n_out:
         dt = dtype_from_fields(msg.fields, ps, is_bigendian=bool(msg.is_bigendian))
@@ -165,7 +171,7 @@ def corrected_cloud(msg: PointCloud2, dev_mm: np.ndarray, keep: np.ndarray | Non
                                      strides=(int(msg.row_step), ps)).reshape(-1)
         recs: np.ndarray = raw[keep] if keep is not None else raw.copy()
         for i, axis in enumerate(("x", "y", "z")):
-            recs[axis] = recs[axis] + add[:, i].astype(recs[axis].dtype)
+            recs[axis] = recs[axis] + shift[:, i].astype(recs[axis].dtype)
         np.frombuffer(buf, dtype=np.uint8)[:] = np.ascontiguousarray(recs).reshape(-1).view(np.uint8)
     out = new_cloud_message()  # adopts buf without a copy
     out.header = msg.header

@@ -58,10 +58,11 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("max_points", 2_000_000, "points", "largest cloud (width x height) processed", 1, 100_000_000),
     ParamSpec("cloud_overflow", "reject", "", "what to do with a cloud over max_points: reject (ERROR) or decimate "
               "(deterministic stride; verdict at least WARN)", choices=("reject", "decimate")),
-    ParamSpec("reliability", "best_effort", "", "QoS reliability of the scan subscription (history depth 5, "
-              "volatile; best_effort matches best-effort and reliable publishers; the standard "
-              "qos_overrides./scan.subscription.reliability parameter wins over it)",
-              choices=("reliable", "best_effort"), read_only=True),
+    ParamSpec("reliability", "auto", "", "QoS reliability of the scan subscription (history depth 5, volatile): "
+              "auto follows the topic's publishers (reliable when all of them are, else best_effort; re-checked "
+              "every second), best_effort matches every publisher, reliable only reliable ones; the standard "
+              "qos_overrides./scan.subscription.reliability parameter wins over it",
+              choices=("auto", "reliable", "best_effort"), read_only=True),
     ParamSpec("queue_depth", 4, "scans", "scans waiting for the worker; the oldest is dropped (and counted) "
               "when full", 1, 64, read_only=True),
     ParamSpec("tolerance", 0.0001, "m", "flag OVER_TOLERANCE when the predicted |error| exceeds it; tolerance of "
@@ -106,6 +107,9 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("working_volume", 1000.0, "m", "half-width of the working volume (cube about the scan frame's origin): "
               "finite points with a larger |x|, |y| or |z| are non-physical, flagged OUT_OF_VOLUME, no prediction",
               1e-3, 1e6),
+    ParamSpec("loss_warn_period", 60.0, "s", "/diagnostics WARN for this long after a scan was lost in transport "
+              "(DDS sample-lost event or a gap in a publisher's sequence numbers), with the likely cause and its "
+              "fix; 0 = counters only", 0.0, 86400.0),
     ParamSpec("scan_timeout", 5.0, "s", "/diagnostics WARN when no scan arrived for this long (stale input: a "
               "dead scanner is visible)", 0.1, 3600.0),
     ParamSpec("diagnostics_period", 1.0, "s", "period of /diagnostics (also published at once on a level change)",

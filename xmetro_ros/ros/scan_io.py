@@ -5,7 +5,8 @@ Layout of a scan bag (rosbag2 format, see :mod:`xmetro_ros.bag`):
 - ``/scanner_settings`` (xmetro_ros/msg/ScannerSettings, SI units) stamped 1 µs before each cloud;
 - ``/scan`` (sensor_msgs/msg/PointCloud2, metres): float32 x, y, z, the scan's fields (length fields in metres,
   see ``ros.convert.LENGTH_FIELDS``) and, for simulated scans, the expected error as float32 ``ex, ey, ez``
-  (metres; nominal − measured);
+  (metres; the training target nominal − measured, the simulator's truth: not a product output, and of the
+  opposite sign to the node's ``dx, dy, dz``, see docs/conventions.md);
 - one MCAP metadata record ``xmetro_scan/<i>`` per scan: key ``json`` = the scan's artifact dict, meta,
   original stamp, shape, field dtypes, settings (mm/ms), pose (mm) and scanner id — what the cloud cannot carry;
 - one metadata record ``xmetro_manifest`` (key ``json``) holding the campaign manifest.

@@ -82,7 +82,7 @@ def default_model_dir() -> Path:
 
 def pose_model_dir() -> Path:
     """Directory of the shipped pose model set (trained at the rescan recommender's head orientations: it judges
-    scans taken there and the recommender searches with it; docs/node.md, "Two model sets"), found like
+    scans taken there and the recommender searches with it; docs/services.md, "Two model sets"), found like
     :func:`default_model_dir`."""
     return _shipped_model_dir("posed")
 

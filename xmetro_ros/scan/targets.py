@@ -1,5 +1,10 @@
 """Targets (the study's eq. 8-15): per-axis error = nominal − measured, mm.
 
+This is the *internal* sign (training targets, model outputs, the simulator's errors, the study's tables). What
+the product publishes or shows a user is the deviation d = measured − nominal (VIM 2.16, the sign of every CAD
+inspection map): :func:`published_deviation` turns a target into it and :func:`study_target` back — the one place
+the sign is written (docs/conventions.md, "Errors").
+
 Radial projection onto a sphere, axial onto a cylinder (no error along the axis), orthogonal onto a plane —
 ``Artifact.errors``. For an artifact not at its nominal position, ``errors_with_fit`` first fits its position
 with the nominal radius fixed (sphere centre; cylinder axis position with the axis direction fixed; plane offset
@@ -24,6 +29,8 @@ __all__ = [
     "fit_sphere",
     "fit_sphere_center",
     "point_errors",
+    "published_deviation",
+    "study_target",
 ]
 
 #: A fixed-radius fit whose residual RMS exceeds this fraction of the nominal radius does not describe the data.
@@ -41,6 +48,25 @@ def _check(points: np.ndarray, artifact: Artifact) -> np.ndarray:
     if not np.all(np.isfinite(p)):
         raise ValueError("points contain NaN or inf")
     return p
+
+
+def published_deviation(target: np.ndarray) -> np.ndarray:
+    """The deviation the product publishes, d = measured − nominal, from the study's target t = nominal − measured
+    (any shape, any unit): d = −t. Exact in floating point (a sign flip), so the published float32 values are
+    those of the target with the sign bit flipped; a NaN (no prediction) stays the very same NaN."""
+    return _flip(target)
+
+
+def study_target(deviation: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`published_deviation`: the study's target t = nominal − measured from a published
+    deviation d = measured − nominal (read back from ``~/deviations``, an ``xmetro predict`` bag, ``~/explain``)."""
+    return _flip(deviation)
+
+
+def _flip(values: np.ndarray) -> np.ndarray:
+    """−values, NaN left as they are (bits included); the dtype kept."""
+    v = np.asarray(values)
+    return np.where(np.isnan(v), v, np.negative(v)) if v.dtype.kind in "fc" else np.negative(v)
 
 
 def point_errors(points: np.ndarray, artifact: Artifact) -> np.ndarray:
