@@ -171,3 +171,23 @@ def test_deadline_abandons_between_stages(handler, scan):
         handler.process(scan, deadline=time.monotonic() - 1.0)
     assert e.value.code == "TIMEOUT" and "max_processing_time" in str(e.value)
     assert handler.process(scan, deadline=time.monotonic() + 600.0).quality["error_code"] == "NONE"
+
+
+def test_a_single_profile_is_never_judged_a_good_scan(handler):
+    """Issue 24: one profile of a driver sent as a cloud (the middle row of a 55 mm sphere scan at 15/5/2, its own
+    settings and pose) has no neighbours across the scan direction: judged RESCAN at best, and the message says why;
+    the scan it came from, and a narrow strip of 5 rows, are not called a single profile."""
+    from xmetro_ros.judge.scan_handler import single_profile_reason
+
+    full = simulate_scan(Sphere(27.5, np.zeros(3)), ScanSettings(15.0, 5.0, 2.0), seed=3)
+    mid = full.shape[0] // 2
+    row = Scan(points=full.points[mid:mid + 1], settings=full.settings, pose=full.pose, scanner_id=full.scanner_id,
+               fields={k: v[mid:mid + 1] for k, v in full.fields.items()})
+    q = handler.process(row).quality
+    assert q["verdict"] == fl.VERDICT_RESCAN and "single laser-line profile" in q["message"], q["message"]
+    assert "single laser-line profile" not in handler.process(full).quality["message"]
+    strip = full.points[mid - 2:mid + 3].reshape(-1, 3)
+    strip = strip[np.isfinite(strip).all(axis=1)]
+    assert single_profile_reason(strip, full.pose, full.settings.direction_density, 90.0) == ""
+    one = full.points[mid].reshape(-1, 3)
+    assert single_profile_reason(one[np.isfinite(one).all(axis=1)], full.pose, full.settings.direction_density, 90.0)

@@ -89,6 +89,32 @@ def foreign_scan_reason(points: np.ndarray, pose: HeadPose | None, scanner: Scan
             "predicted for it.")
 
 
+#: A scan whose points span fewer than this many profile spacings (1 / direction density) along the scan direction
+#: is one laser-line profile (a driver's message), not a scan: it has no neighbours across the scan direction.
+SINGLE_PROFILE_SPACINGS = 3.0
+
+
+def single_profile_reason(points: np.ndarray, pose: HeadPose | None, direction_density_per_mm: float,
+                          standoff_mm: float) -> str:
+    """Why the finite ``points`` (N, 3) mm are a single profile rather than a scan ('' when they are a scan): their
+    extent along the head's scan direction (head +Y of ``pose``; the study's looking-down pose without one) is below
+    :data:`SINGLE_PROFILE_SPACINGS` profile spacings. Such points get normals from one line only, so they are judged
+    but never better than RESCAN, and the message says why (issue 24: profiles are assembled first)."""
+    p = np.asarray(points, dtype=np.float64)
+    if len(p) < 2 or direction_density_per_mm <= 0:
+        return ""
+    step = max(1, len(p) // FOREIGN_CHECK_POINTS)
+    head = pose if pose is not None else HeadPose.looking_down(standoff_mm)
+    along = p[::step] @ np.asarray(head.rotation, dtype=np.float64)[:, 1]
+    extent = float(along.max() - along.min())
+    spacing = 1.0 / direction_density_per_mm
+    if extent >= SINGLE_PROFILE_SPACINGS * spacing:
+        return ""
+    return (f"a single laser-line profile, not a scan: its points span {extent * 1000:.0f} µm along the scan "
+            f"direction (profile spacing {spacing * 1000:.0f} µm), so its normals come from one line and are not "
+            "reliable; send scans assembled from many profiles (docs/profile-streams.md)")
+
+
 class ScanError(ValueError):
     """A scan that cannot be processed. ``code`` is a ScanQuality ERROR_* name without the prefix."""
 
@@ -366,9 +392,12 @@ class ScanHandler:
         if missing:
             raise ScanError("MISSING_INPUT_FIELD", f"the model needs per-point field(s) {', '.join(missing)} "
                                                    f"that the cloud lacks (has: {', '.join(sorted(scan.fields))})")
-        foreign = foreign_scan_reason(scan.points.reshape(-1, 3)[valid.reshape(-1)], scan.pose, self.scanner)
+        valid_pts = scan.points.reshape(-1, 3)[valid.reshape(-1)]
+        foreign = foreign_scan_reason(valid_pts, scan.pose, self.scanner)
         if foreign:
             raise ScanError("NOT_A_LASER_SCAN", foreign)
+        one_profile = single_profile_reason(valid_pts, scan.pose, float(scan.settings.direction_density),
+                                            float(self.scanner.standoff_mm))
 
         check_deadline(deadline, "pre-processing")
         try:
@@ -442,6 +471,10 @@ class ScanHandler:
 
         quality = self.summarize(flags, pred, n_valid, settings_defaulted, kept is not None, n, finite=finite,
                                  U=U[finite & ~no_u], decisions=cls[finite], note=unc_note, model_id=model_id)
+        if one_profile:  # never OK or WARN, whatever its flags say: its normals are not those of a surface
+            quality["verdict"] = max(int(quality["verdict"]), fl.VERDICT_RESCAN)
+            quality["verdict_name"] = fl.VERDICT_NAMES[quality["verdict"]]
+            quality["message"] = f"{one_profile}; {quality['message']}"
         return ScanResult(deviations=dev, flags=flags, quality=quality, prepared=prepared, features=X,
                           predictions=pred, context=ctx, scan=scan, kept=kept, uncertainty=unc, row_uncertainty=U,
                           decisions=decisions, shape_out_of_domain=shape_ood, model_id=model_id)
