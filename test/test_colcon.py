@@ -100,11 +100,16 @@ def test_colcon_build_and_test(tmp_path: Path):
                     "(tools/build-requirements.txt)")
     ws = tmp_path / "ws"
     _tracked_copy(ws / "src" / "xmetro_ros")
+    # The real data sits beside the repository (../shared): beside the package's copy too, so the tests that read
+    # it run under colcon as in the checkout; colcon looks for packages in the package's folder only.
+    if (ROOT.parent / "shared").exists():
+        (ws / "src" / "shared").symlink_to(ROOT.parent / "shared")
+    crawl = ["--base-paths", str(ws / "src" / "xmetro_ros")]
     env = _colcon_env()
     colcon = shutil.which("colcon", path=env["PATH"])
     assert colcon is not None
     # --symlink-install, as ROS developers build (test_packaging's CMake install covers the copying layout).
-    build = subprocess.run([colcon, "build", "--symlink-install", "--event-handlers", "console_direct-",
+    build = subprocess.run([colcon, "build", *crawl, "--symlink-install", "--event-handlers", "console_direct-",
                             "--cmake-args", f"-DPython3_EXECUTABLE={sys.executable}", "-DBUILD_TESTING=ON"],
                            cwd=ws, env=env, capture_output=True, text=True, timeout=900)
     assert build.returncode == 0, build.stdout[-3000:] + build.stderr[-3000:]
@@ -118,7 +123,8 @@ def test_colcon_build_and_test(tmp_path: Path):
 
     # No `source install/setup.bash` on purpose: the registered test must find the install by itself.
     run_env = dict(env, PYTEST_ADDOPTS=f"-k '{SUBSET}'")
-    test = subprocess.run([colcon, "test", "--return-code-on-test-failure", "--event-handlers", "console_direct-"],
+    test = subprocess.run([colcon, "test", *crawl, "--return-code-on-test-failure", "--event-handlers",
+                           "console_direct-"],
                           cwd=ws, env=run_env, capture_output=True, text=True, timeout=900)
     log = (ws / "build" / "xmetro_ros" / "ament_cmake_pytest" / "xmetro_ros_pytest.txt")
     detail = (log.read_text()[-4000:] if log.exists() else "") + test.stderr[-2000:]
@@ -131,7 +137,8 @@ def test_colcon_build_and_test(tmp_path: Path):
 
     # A test module that cannot be imported: collection fails, so does `colcon test` (not exit 0 with nothing run).
     (ws / "src" / "xmetro_ros" / "test" / "test_zz_uncollectable.py").write_text("import no_such_module_xmetro\n")
-    broken = subprocess.run([colcon, "test", "--return-code-on-test-failure", "--event-handlers", "console_direct-"],
+    broken = subprocess.run([colcon, "test", *crawl, "--return-code-on-test-failure", "--event-handlers",
+                             "console_direct-"],
                             cwd=ws, env=dict(env, PYTEST_ADDOPTS="-k test_imports_come_from_the_install"),
                             capture_output=True, text=True, timeout=600)
     assert broken.returncode != 0, broken.stdout[-2000:]
