@@ -284,14 +284,18 @@ DROPPING = frozenset({"wecat3d_py", "gocator"})
 
 # -- organized clouds --------------------------------------------------------------------------------------------
 
-def mech_eye_batch(points: np.ndarray, stamp_ns: int, *, frame_id: str = "mechmind_profiler") -> Emulated:
-    """A Mech-Eye profiler batch: (H, W, 3) → height H, width W, x, y, z float32 packed (12), NaN holes."""
+def _organized(points: np.ndarray) -> tuple[int, int, np.ndarray, np.ndarray]:
+    """(H, W, flat (H·W, 3) float64, no-return mask (H·W,)) of organized points (H, W, 3)."""
     p = np.asarray(points, dtype=np.float64)
     if p.ndim != 3 or p.shape[2] != 3:
         raise ValueError(f"points must be (H, W, 3), got {p.shape}")
-    h, w = p.shape[:2]
     flat = p.reshape(-1, 3)
-    bad = ~np.isfinite(flat).all(axis=1)
+    return p.shape[0], p.shape[1], flat, ~np.isfinite(flat).all(axis=1)
+
+
+def mech_eye_batch(points: np.ndarray, stamp_ns: int, *, frame_id: str = "mechmind_profiler") -> Emulated:
+    """A Mech-Eye profiler batch: (H, W, 3) → height H, width W, x, y, z float32 packed (12), NaN holes."""
+    h, w, flat, bad = _organized(points)
     rec = _record([("x", 0, "f4"), ("y", 4, "f4"), ("z", 8, "f4")], 12, h * w)
     for i, k in enumerate("xyz"):
         rec[k] = np.where(bad, np.nan, flat[:, i])
@@ -303,12 +307,7 @@ def mech_eye_batch(points: np.ndarray, stamp_ns: int, *, frame_id: str = "mechmi
 
 def area_sensor(points: np.ndarray, stamp_ns: int, *, frame_id: str = "zivid_optical_frame") -> Emulated:
     """An area sensor (Zivid / Photoneo-like): (H, W, 3) organized, NaN holes, snr float32 at 12, point_step 16."""
-    p = np.asarray(points, dtype=np.float64)
-    if p.ndim != 3 or p.shape[2] != 3:
-        raise ValueError(f"points must be (H, W, 3), got {p.shape}")
-    h, w = p.shape[:2]
-    flat = p.reshape(-1, 3)
-    bad = ~np.isfinite(flat).all(axis=1)
+    h, w, flat, bad = _organized(points)
     snr = np.where(bad, 0.0, 5.0 + (np.arange(h * w) % 97) * 0.25)
     rec = _record([("x", 0, "f4"), ("y", 4, "f4"), ("z", 8, "f4"), ("snr", 12, "f4")], 16, h * w)
     for i, k in enumerate("xyz"):

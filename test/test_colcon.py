@@ -61,14 +61,10 @@ def _tracked_copy(dest: Path) -> None:
 
 
 def _colcon_env() -> dict[str, str]:
-    """This environment's ROS 2 wheels as the underlay (the venv is the prefix holding share/ament_index)."""
-    import rosidl_generator_py
+    """This environment's ROS 2 wheels as the underlay, without the variables of a `colcon test` run itself."""
+    from test_packaging import underlay_env
 
-    ros = Path(rosidl_generator_py.__file__).resolve().parents[4]
-    bindir = Path(sys.executable).parent
-    env = dict(os.environ, AMENT_PREFIX_PATH=str(ros), CMAKE_PREFIX_PATH=str(ros),
-               LD_LIBRARY_PATH=os.pathsep.join(filter(None, [str(ros / "lib"), os.environ.get("LD_LIBRARY_PATH")])),
-               PATH=os.pathsep.join([str(bindir), str(ros / "bin"), os.environ.get("PATH", "")]))
+    env = underlay_env()
     env.pop(INSTALL_ENV, None)
     env.pop("PYTEST_ADDOPTS", None)
     return env

@@ -101,6 +101,20 @@ def test_one_version_everywhere():
     assert version("xmetro_ros") == v
     assert f"## {v}" in (ROOT / "CHANGELOG.md").read_text()
 # -- the colcon route ----------------------------------------------------------------------------------------------
+def underlay_env() -> dict[str, str]:
+    """This environment with the ROS 2 wheels' install tree (the venv: it holds share/ament_index) as the underlay
+    of a CMake / colcon build: AMENT_PREFIX_PATH, CMAKE_PREFIX_PATH, its lib/ and bin/ (test_colcon.py uses it too)."""
+    import os
+
+    import rosidl_generator_py
+
+    ros = Path(rosidl_generator_py.__file__).resolve().parents[4]
+    return dict(os.environ, AMENT_PREFIX_PATH=str(ros), CMAKE_PREFIX_PATH=str(ros),
+                LD_LIBRARY_PATH=os.pathsep.join(filter(None, [str(ros / "lib"), os.environ.get("LD_LIBRARY_PATH")])),
+                PATH=os.pathsep.join([str(Path(sys.executable).parent), str(ros / "bin"),
+                                      os.environ.get("PATH", "")]))
+
+
 def _colcon_install(prefix: Path, build: Path) -> None:
     """Configure, build and install the CMake project the way `colcon build` does (XMETRO_PIP_BUILD OFF, so CMake
     installs the Python package, config, model, launch file and scripts too) into ``prefix``, against the ROS 2
@@ -108,14 +122,7 @@ def _colcon_install(prefix: Path, build: Path) -> None:
     import os
     import shutil
 
-    import rosidl_generator_py
-
-    ros = Path(rosidl_generator_py.__file__).resolve().parents[4]
-    bindir = Path(sys.executable).parent
-    env = dict(os.environ, AMENT_PREFIX_PATH=str(ros), CMAKE_PREFIX_PATH=str(ros),
-               PYTHONPATH=os.pathsep.join(p for p in sys.path if p),
-               LD_LIBRARY_PATH=os.pathsep.join(filter(None, [str(ros / "lib"), os.environ.get("LD_LIBRARY_PATH")])),
-               PATH=os.pathsep.join([str(bindir), str(ros / "bin"), os.environ.get("PATH", "")]))
+    env = dict(underlay_env(), PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
     cmake = shutil.which("cmake", path=env["PATH"])
     if cmake is None:
         pytest.skip("cmake is not installed (it comes with the build requirements: `make setup`)")

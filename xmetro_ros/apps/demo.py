@@ -156,7 +156,7 @@ def _quat_deg(q: Any) -> str:
     """A head rotation relative to the current head pose, as a person reads it: the angle about an axis of the head
     frame (X along the laser line, Y the scan direction, Z the laser axis), and the same rotation as Rz·Ry·Rx
     angles (the recommender's own parametrisation, ``scan.geometry.rotation_xyz``)."""
-    from ..scan.geometry import quat_to_matrix
+    from ..scan.geometry import quat_to_matrix, xyz_angles
 
     r = quat_to_matrix([q.x, q.y, q.z, q.w])
     angle = float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1.0, 1.0))))
@@ -169,9 +169,7 @@ def _quat_deg(q: Any) -> str:
         axis = v[:, int(np.argmax(w))]
     else:
         axis = axis / n
-    ry = float(np.degrees(np.arcsin(np.clip(-r[2, 0], -1.0, 1.0))))
-    rx = float(np.degrees(np.arctan2(r[2, 1], r[2, 2])))
-    rz = float(np.degrees(np.arctan2(r[1, 0], r[0, 0])))
+    rx, ry, rz = np.degrees(xyz_angles(r))
     return (f"turn the head {angle:.1f}° about its axis ({axis[0]:.2f}, {axis[1]:.2f}, {axis[2]:.2f}) in the head "
             f"frame (X laser line, Y scan direction, Z laser axis) = tilt {rx:.1f}° about X, {ry:.1f}° about Y, "
             f"turn {rz:.1f}° about Z (applied Z·Y·X) from the current pose")
@@ -182,14 +180,12 @@ def target_orientation_text(current: Any, q_rel: Any) -> str:
     ScannerSettings, its ``head_pose`` in ``header.frame_id``; ``q_rel``: the recommendation, relative to that pose,
     in the head frame): R_target = R_current · R_rel (``HeadPose.rotated``), as a quaternion and as REP 103 roll,
     pitch, yaw (fixed axes X, Y, Z: R = Rz(yaw) Ry(pitch) Rx(roll))."""
-    from ..scan.geometry import matrix_to_quat, quat_to_matrix
+    from ..scan.geometry import matrix_to_quat, quat_to_matrix, xyz_angles
 
     o = current.head_pose.orientation
     r = quat_to_matrix([o.x, o.y, o.z, o.w]) @ quat_to_matrix([q_rel.x, q_rel.y, q_rel.z, q_rel.w])
     q = matrix_to_quat(r)
-    pitch = float(np.degrees(np.arcsin(np.clip(-r[2, 0], -1.0, 1.0)))) + 0.0  # + 0.0: no "-0.0°"
-    roll = float(np.degrees(np.arctan2(r[2, 1], r[2, 2]))) + 0.0
-    yaw = float(np.degrees(np.arctan2(r[1, 0], r[0, 0]))) + 0.0
+    roll, pitch, yaw = np.degrees(xyz_angles(r)) + 0.0  # + 0.0: no "-0.0°"
     frame = current.header.frame_id or "(the scan's frame)"
     return (f"in frame '{frame}': roll {roll:.1f}°, pitch {pitch:.1f}°, yaw {yaw:.1f}° (REP 103, fixed X-Y-Z); "
             f"quaternion (x, y, z, w) = ({q[0]:.4f}, {q[1]:.4f}, {q[2]:.4f}, {q[3]:.4f}); the head turns about the "
@@ -198,9 +194,9 @@ def target_orientation_text(current: Any, q_rel: Any) -> str:
 
 def _node_tolerance_m() -> float:
     """The demo node's ``tolerance`` (it runs with the parameter's default), metres."""
-    from ..ros.params import PARAMS
+    from ..ros.params import default_value
 
-    return float(next(p.default for p in PARAMS if p.name == "tolerance"))
+    return float(default_value("tolerance"))
 
 
 def _recommend_dict(r: Any, region: str, current: Any = None) -> dict[str, Any]:

@@ -3,7 +3,7 @@ before and after the model's compensation, with U along the normal (``xmetro_ros
 
 The node's ``~/deviations`` cloud of each scan (x, y, z as received, predicted deviation dx, dy, dz = measured −
 nominal, U ux, uy, uz, flags; metres) is read back, converted to mm (the deviations turned back into the model's
-target by ``scan.targets.study_target``, what ``cad_deviation`` takes) and compared with the CAD placed by
+target by ``ros.node_outputs.deviation_arrays``, what ``cad_deviation`` takes) and compared with the CAD placed by
 ``--cad-pose`` (part → scan frame: 12 numbers, the first three rows of a 4×4 matrix, mm; default identity) or
 registered on the compensated scan (``--cad-register``: point-to-plane ICP from that pose, its fit and uncertainty
 reported). Needs open3d (``[train]`` extra) for the mesh queries. Writes ``--cad-report`` (JSON; default OUT.cad.json).
@@ -38,8 +38,8 @@ def cad_reports(outputs: list[Any], cad_path: str | Path, *, pose: np.ndarray | 
     ``predict_bag``); written to ``report`` (JSON) when given."""
     from ..parts.cad_judge import cad_deviation
     from ..ros.cloud import read_points_numpy
+    from ..ros.node_outputs import deviation_arrays
     from ..scan.mesh import MeshArtifact
-    from ..scan.targets import study_target
 
     cad = MeshArtifact.from_file(cad_path)
     rows: list[dict[str, Any]] = []
@@ -47,11 +47,10 @@ def cad_reports(outputs: list[Any], cad_path: str | Path, *, pose: np.ndarray | 
         if o.deviations is None:
             rows.append({"scan": k, "error": "no deviations (scan in ERROR or not kept)"})
             continue
-        a = read_points_numpy(o.deviations, ["x", "y", "z", "dx", "dy", "dz", "ux", "uy", "uz"]).astype(np.float64)
-        flags = np.asarray(read_points_numpy(o.deviations, ["flags"])).reshape(-1)
-        a *= 1e3  # m → mm
-        a[:, 3:6] = study_target(a[:, 3:6])  # published d = measured − nominal → the target nominal − measured
-        dev = cad_deviation(cad, a[:, :3], a[:, 3:6], a[:, 6:9], flags=flags, pose=pose, register=register)
+        # points and the model's target nominal − measured (the published d turned back), mm; U in mm
+        pts, target, flags = deviation_arrays(o.deviations)
+        u = read_points_numpy(o.deviations, ["ux", "uy", "uz"]).astype(np.float64) * 1e3
+        dev = cad_deviation(cad, pts, target, u, flags=flags, pose=pose, register=register)
         rows.append({"scan": k, "stamp_ns": int(o.stamp_ns), **dev.summary()})
     if report is not None:
         Path(report).write_text(json.dumps({"cad": str(cad_path), "scans": rows}, indent=1))

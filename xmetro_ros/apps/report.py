@@ -34,7 +34,8 @@ def write_bag_report(bag: str | Path, out: str | Path, node_name: str = "xmetro_
     """Write the report of ``bag``'s judged scans to ``out``; ValueError when it holds none. ``tolerance_m``: the
     judging node's ``tolerance`` (None: the parameter's default), stated with the decisions."""
     from ..ros.node_outputs import read_outputs
-    from .demo import _node_tolerance_m, input_scans, report_scans, scan_summary_line
+    from ..ros.params import default_value
+    from .demo import input_scans, report_scans, scan_summary_line
     from .report_html import write_report
 
     if tolerance_m is not None and not tolerance_m > 0:
@@ -52,7 +53,7 @@ def write_bag_report(bag: str | Path, out: str | Path, node_name: str = "xmetro_
                         meta={"bag": str(bag), "model set(s)": ", ".join(models) or "-"},
                         title=f"xmetro report: {Path(bag).name}",
                         services_note=f"not in a recorded bag: `xmetro demo --bag {bag}` asks a live node",
-                        tolerance_m=_node_tolerance_m() if tolerance_m is None else tolerance_m,
+                        tolerance_m=float(default_value("tolerance")) if tolerance_m is None else tolerance_m,
                         tolerance_note=("the node's default <code>tolerance</code>: a bag does not record the node's "
                                         "parameters, <code>xmetro report --tolerance</code> states another"
                                         if tolerance_m is None else "<code>xmetro report --tolerance</code>"))

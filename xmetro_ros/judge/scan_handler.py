@@ -470,11 +470,8 @@ class ScanHandler:
             flags[silent] |= fl.FLAG_INVALID_POINT
 
         quality = self.summarize(flags, pred, n_valid, settings_defaulted, kept is not None, n, finite=finite,
-                                 U=U[finite & ~no_u], decisions=cls[finite], note=unc_note, model_id=model_id)
-        if one_profile:  # never OK or WARN, whatever its flags say: its normals are not those of a surface
-            quality["verdict"] = max(int(quality["verdict"]), fl.VERDICT_RESCAN)
-            quality["verdict_name"] = fl.VERDICT_NAMES[quality["verdict"]]
-            quality["message"] = f"{one_profile}; {quality['message']}"
+                                 U=U[finite & ~no_u], decisions=cls[finite], note=unc_note, model_id=model_id,
+                                 rescan_reason=one_profile)
         return ScanResult(deviations=dev, flags=flags, quality=quality, prepared=prepared, features=X,
                           predictions=pred, context=ctx, scan=scan, kept=kept, uncertainty=unc, row_uncertainty=U,
                           decisions=decisions, shape_out_of_domain=shape_ood, model_id=model_id)
@@ -496,17 +493,18 @@ class ScanHandler:
 
     def summarize(self, flags: np.ndarray, pred: np.ndarray, n_valid: int, settings_defaulted: bool,
                   decimated: bool, n_received: int, finite: np.ndarray | None = None, U: np.ndarray | None = None,
-                  decisions: np.ndarray | None = None, note: str = "", model_id: str | None = None) -> dict[str, Any]:
+                  decisions: np.ndarray | None = None, note: str = "", model_id: str | None = None,
+                  rescan_reason: str = "") -> dict[str, Any]:
         """Quality summary (mm): counts, per-flag counts, mean / p95 |error| and U per axis, decision class counts,
         verdict and its reason.
 
         ``pred`` (M, 3) mm: the predictions the error statistics are over, only its rows ``finite`` (bool (M,))
         when given; ``U`` (Q, 3): finite U of the predicted points that have one; ``decisions`` (P,): the class of
         each finite prediction; ``note``: added to the message (why there is no U); ``model_id``: the model set
-        that judged (default: the primary's id). Compiled one-pass statistics
-        (xmetro_ros.judge.scan_stats), the same numbers as numpy's ``count_nonzero`` / ``flag_counts`` /
-        ``mean(axis=0)``
-        / ``percentile(95, axis=0)`` (tested)."""
+        that judged (default: the primary's id); ``rescan_reason``: a reason the scan is RESCAN at best, whatever
+        its flags say (a single profile: its normals are not those of a surface), first in the message. Compiled
+        one-pass statistics (xmetro_ros.judge.scan_stats), the same numbers as numpy's ``count_nonzero`` /
+        ``flag_counts`` / ``mean(axis=0)`` / ``percentile(95, axis=0)`` (tested)."""
         from .scan_stats import abs_error_stats, flag_tally
 
         n_flagged_all, counts = flag_tally(flags, fl.FLAG_BITS)
@@ -522,6 +520,8 @@ class ScanHandler:
                                   int(dec_counts[fl.NON_CONFORMING]), self.params.thresholds,
                                   settings_defaulted=settings_defaulted, decimated=decimated,
                                   n_undecided=int(dec_counts[fl.UNDECIDED]))
+        if rescan_reason:
+            code, reason = max(code, fl.VERDICT_RESCAN), f"{rescan_reason}; {reason}"
         mean, p95 = abs_error_stats(pred, finite, 95.0)
         Ua = np.empty((0, 3)) if U is None else np.asarray(U, dtype=np.float64)
         u_mean = Ua.mean(axis=0) if len(Ua) else np.full(3, np.nan)

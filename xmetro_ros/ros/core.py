@@ -303,11 +303,10 @@ class XmetroCore:
         xyz, _ = xyz_fields(msg)
         points_m = np.asarray(xyz if keep is None else xyz[keep], dtype=np.float32)
         # The one place the node's sign turns: the model's target t = nominal − measured is published as the
-        # deviation d = measured − nominal (docs/conventions.md, "Errors"); ~/corrected = measured − d.
-        published = published_deviation(res.deviations)
-        dev_cloud = deviations_cloud(msg.header, points_m, published, res.flags, out_h, out_w,
-                                     unc_mm=res.uncertainty)
-        corrected = corrected_cloud(msg, published, keep, out_h, out_w)
+        # deviation d = measured − nominal (docs/conventions.md, "Errors"); ~/corrected = measured + t = measured − d.
+        dev_cloud = deviations_cloud(msg.header, points_m, published_deviation(res.deviations), res.flags, out_h,
+                                     out_w, unc_mm=res.uncertainty)
+        corrected = corrected_cloud(msg, res.deviations, keep, out_h, out_w)
         cad_msg, cad_pose, cad_error, cad_log = self._cad_map(msg, points_m, res)
         self.history.add(JudgedScan(
             stamp_ns=stamp_ns, frame_id=msg.header.frame_id, n_points=out_h * out_w,

@@ -95,6 +95,11 @@ def reliability_for_publishers(offered: list[str]) -> str:
     return "reliable" if offered and all(o == "reliable" for o in offered) else "best_effort"
 
 
+def _reliability_name(qos: QoSProfile) -> str:
+    """``"reliable"`` or ``"best_effort"`` (the ``reliability`` parameter's words) of a QoS profile."""
+    return "reliable" if qos.reliability == ReliabilityPolicy.RELIABLE else "best_effort"
+
+
 def settings_qos(durability: DurabilityPolicy = DurabilityPolicy.TRANSIENT_LOCAL) -> QoSProfile:
     """QoS of a ``scanner_settings`` subscription (reliable, depth 10; transient-local and volatile: see
     :meth:`XmetroWiring._create_inputs`)."""
@@ -133,7 +138,6 @@ class XmetroWiring(ScanWorker, ServiceHandlers):
         self._outputs: list[Any] = []
         self.timer_diag: Any = None
         self.timer_qos: Any = None
-        self._auto_qos = False
 
     def _load_core(self) -> XmetroCore:
         """Read and check the parameters, load the model set and the scanner (XmetroCore)."""
@@ -181,11 +185,8 @@ class XmetroWiring(ScanWorker, ServiceHandlers):
         # (command line, params file) wins, as does any override that changed what was asked.
         topic = self.sub_scan.topic_name
         overridden = (f"qos_overrides.{topic}.subscription.reliability" in getattr(self, "_parameter_overrides", {})
-                      or self.sub_scan.qos_profile.reliability != scan_qos(asked).reliability)
-        self._auto_qos = values["reliability"] == "auto" and not overridden
-        if self.diag is not None:
-            self.diag.scan_reliability = ("reliable" if self.sub_scan.qos_profile.reliability
-                                          == ReliabilityPolicy.RELIABLE else "best_effort")
+                      or _reliability_name(self.sub_scan.qos_profile) != asked)
+        auto_qos = values["reliability"] == "auto" and not overridden
         # Reference scans: their own topic (a cell publishes or remaps its reference-artifact scans there), the same
         # QoS and queue as the scans; judged like any scan, then checked against the reference sphere.
         self.sub_reference = self.create_subscription(
@@ -224,23 +225,26 @@ class XmetroWiring(ScanWorker, ServiceHandlers):
         self._worker = self._start_worker()
         self.timer_diag = self.create_timer(float(values["diagnostics_period"]), self._publish_diag,
                                             callback_group=self._srv_group)
-        if self._auto_qos:
+        if auto_qos:
             self._adapt_scan_qos()
             self.timer_qos = self.create_timer(AUTO_QOS_PERIOD_S, self._adapt_scan_qos, callback_group=self._srv_group)
         self._publish_diag()
 
     def _scan_subscription(self, reliability: str, overrides: QoSOverridingOptions | None) -> Any:
         """The ``scan`` subscription with ``reliability``; ``overrides`` declares (first time) and applies the
-        ``qos_overrides`` parameters."""
+        ``qos_overrides`` parameters. /diagnostics is told the reliability it got (its loss message depends on it)."""
         try:
-            return self.create_subscription(
+            sub = self.create_subscription(
                 PointCloud2, "scan", self._on_scan, scan_qos(reliability), callback_group=self._work_group,
                 event_callbacks=self._scan_event_callbacks(), qos_overriding_options=overrides)
         except Exception as e:  # a middleware without the message-lost event: sequence gaps still count losses
             self.get_logger().warning(f"message-lost events unavailable ({type(e).__name__}: {e})")
-            return self.create_subscription(
+            sub = self.create_subscription(
                 PointCloud2, "scan", self._on_scan, scan_qos(reliability), callback_group=self._work_group,
                 qos_overriding_options=overrides)
+        if self.diag is not None:
+            self.diag.scan_reliability = _reliability_name(sub.qos_profile)
+        return sub
 
     def _adapt_scan_qos(self) -> None:
         """``reliability: auto``: re-create the scan subscription when the publishers' reliability calls for the
@@ -249,17 +253,13 @@ class XmetroWiring(ScanWorker, ServiceHandlers):
         sub = self.sub_scan
         if sub is None or sub not in self._inputs:
             return
-        offered = ["reliable" if i.qos_profile.reliability == ReliabilityPolicy.RELIABLE else "best_effort"
-                   for i in self.get_publishers_info_by_topic(sub.topic_name)]
+        offered = [_reliability_name(i.qos_profile) for i in self.get_publishers_info_by_topic(sub.topic_name)]
         want = reliability_for_publishers(offered)
-        have = "reliable" if sub.qos_profile.reliability == ReliabilityPolicy.RELIABLE else "best_effort"
-        if want == have:
+        if want == _reliability_name(sub.qos_profile):
             return
         self.destroy_subscription(sub)
         self.sub_scan = self._scan_subscription(want, None)
         self._inputs[self._inputs.index(sub)] = self.sub_scan
-        if self.diag is not None:
-            self.diag.scan_reliability = want
         self.get_logger().info(f"scan subscription now {want} to match its {len(offered)} publisher(s) "
                                "(reliability: auto)")
 

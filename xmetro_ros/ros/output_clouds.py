@@ -128,21 +128,20 @@ def cad_cloud(header: Any, points_m: np.ndarray, index: np.ndarray, before_mm: n
     return cloud
 
 
-def corrected_cloud(msg: PointCloud2, dev_mm: np.ndarray, keep: np.ndarray | None, height: int,
+def corrected_cloud(msg: PointCloud2, target_mm: np.ndarray, keep: np.ndarray | None, height: int,
                     width: int) -> PointCloud2:
-    """The input cloud (same fields and byte order) with x, y, z − d (d: the published deviation, measured −
-    nominal); unpredicted points unchanged.
+    """The input cloud (same fields and byte order) with x, y, z + t, t the model's target (nominal − measured):
+    x, y, z − d for the published deviation d = −t; unpredicted points unchanged.
 
     Args:
         msg: the input cloud (already validated).
-        dev_mm: (N, 3) predicted deviation d = measured − nominal (as on ``~/deviations``), mm, one row per kept
-            point (NaN where none).
+        target_mm: (N, 3) the model's predicted target t = nominal − measured, mm, one row per kept point (NaN
+            where none).
         keep: indices of the kept input points (decimated scans), None for all.
         height, width: shape of the output (``height × width = N``).
     """
-    # float32 arithmetic on purpose: the published clouds are float32 and must stay bit-identical to the goldens:
-    # corrected = measured − d, added as −d (= the model's target t exactly: the sign flip is exact).
-    shift = np.negative(dev_mm.astype(np.float32) * np.float32(M_PER_MM))
+    # float32 arithmetic on purpose: the published clouds are float32 and must stay bit-identical to the goldens.
+    shift = target_mm.astype(np.float32) * np.float32(M_PER_MM)
     shift[~np.isfinite(shift)] = 0.0
     by = {f.name: f for f in msg.fields}
     ps = int(msg.point_step)

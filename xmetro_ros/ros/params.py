@@ -19,7 +19,7 @@ from ..judge import flags as fl
 from ..judge.scan_handler import HandlerParams
 from .convert import m_to_mm
 
-__all__ = ["PARAMS", "ParamSpec", "declare_all", "handler_params", "validate", "values_from_node"]
+__all__ = ["PARAMS", "ParamSpec", "declare_all", "default_value", "handler_params", "validate", "values_from_node"]
 
 
 @dataclass(frozen=True)
@@ -142,6 +142,11 @@ _BY_NAME = {p.name: p for p in PARAMS}
 #: Parameters read when the model is loaded (read-only on the plain node; on the lifecycle node settable while
 #: unconfigured, e.g. ``model_dir`` for a model changeover).
 LOAD_TIME = frozenset(p.name for p in PARAMS if p.read_only)
+
+
+def default_value(name: str) -> Any:
+    """The default of parameter ``name`` (SI units, as in config/xmetro.yaml); KeyError for an unknown name."""
+    return _BY_NAME[name].default
 
 
 def _descriptor(p: ParamSpec, writable: bool = False) -> ParameterDescriptor:

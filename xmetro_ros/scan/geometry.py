@@ -31,6 +31,7 @@ __all__ = [
     "rotation_xyz",
     "unit",
     "vec3",
+    "xyz_angles",
 ]
 
 
@@ -225,6 +226,14 @@ def rotation_xyz(rx: float, ry: float, rz: float) -> np.ndarray:
     r_y = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
     r_z = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
     return r_z @ r_y @ r_x
+
+
+def xyz_angles(r: np.ndarray) -> tuple[float, float, float]:
+    """The inverse of :func:`rotation_xyz`: (rx, ry, rz) radians with R = Rz(rz) · Ry(ry) · Rx(rx) — REP 103's roll,
+    pitch, yaw about fixed X, Y, Z (ry in [−π/2, π/2])."""
+    r = np.asarray(r, dtype=np.float64)
+    return (float(np.arctan2(r[2, 1], r[2, 2])), float(np.arcsin(np.clip(-r[2, 0], -1.0, 1.0))),
+            float(np.arctan2(r[1, 0], r[0, 0])))
 
 
 def orientation_grid(max_tilt: float, tilt_steps: int, max_turn: float, turn_steps: int) -> list[np.ndarray]:
