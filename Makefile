@@ -4,7 +4,9 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.xmetro-setup-stamp
 SETUP_INPUTS := pyproject.toml setup.py CMakeLists.txt package.xml $(wildcard msg/*.msg srv/*.srv action/*.action) \
-                tools/setup.sh tools/constraints.txt tools/build-requirements.txt
+                tools/setup.sh tools/constraints.txt tools/build-requirements.txt \
+                $(wildcard vendor/tf2_msgs/CMakeLists.txt vendor/tf2_msgs/package.xml vendor/tf2_msgs/*.yaml \
+                           vendor/tf2_msgs/msg/*.msg vendor/tf2_msgs/srv/*.srv vendor/tf2_msgs/action/*.action)
 # Everything that starts a DDS participant runs in a private network namespace when root (tools/netns_run).
 NETNS := tools/netns_run
 PYTEST_ARGS ?=
@@ -40,4 +42,4 @@ bench: setup
 	$(NETNS) $(PY) bench/run_all.py
 
 clean:
-	rm -rf build out .pytest_cache .ruff_cache xmetro_ros/msg xmetro_ros/srv xmetro_ros/action xmetro_ros/config xmetro_ros/*.so
+	rm -rf build out .pytest_cache .ruff_cache tf2_msgs xmetro_ros/msg xmetro_ros/srv xmetro_ros/action xmetro_ros/config xmetro_ros/*.so

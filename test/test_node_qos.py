@@ -99,15 +99,16 @@ def _default_dds_env(domain: int) -> dict[str, str]:
     return env
 
 
-def _drive(env: dict[str, str], topic: str, reliability: str) -> dict:
+def _drive(env: dict[str, str], topic: str, reliability: str, n_bytes: int = 856_000, count: int = 6,
+           listen: float = 4.0) -> dict:
     out = subprocess.run([sys.executable, str(HERE / "big_cloud_peer.py"), "--topic", topic,
-                          "--reliability", reliability, "--bytes", "856000", "--count", "6"],
-                         env=env, capture_output=True, text=True, timeout=120)
+                          "--reliability", reliability, "--bytes", str(n_bytes), "--count", str(count),
+                          "--listen", str(listen)], env=env, capture_output=True, text=True, timeout=240)
     assert out.returncode == 0, out.stderr[-3000:]
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-@pytest.mark.timeout(300)
+@pytest.mark.timeout(420)
 @pytest.mark.skipif(os.environ.get("XMETRO_IN_NETNS") != "1", reason="default DDS discovery must stay in a private "
                     "network namespace (run as root: the conftest re-executes in one)")
 def test_large_clouds_on_default_dds_settings_arrive_or_are_reported():
@@ -118,9 +119,15 @@ def test_large_clouds_on_default_dds_settings_arrive_or_are_reported():
     env = _default_dds_env(domain)
     with NodeProcess(base_env=env, node_name="judge_auto").start(timeout=90) as auto:
         got = _drive(env, "/scan", "reliable")
+        # issue 24: a 25 MB organized-size cloud from a reliable publisher, default parameters, default DDS
+        # (measured: received and judged, about 7 s each on this 2-core machine, most of it the judging)
+        big = _drive(env, "/scan", "reliable", n_bytes=25_000_000, count=2, listen=25.0)
     assert got["matched"], got
     assert int(got["status"]["scans_received"]) >= 5, got
     assert "lost in transport" not in got["message"], got
+    assert int(big["status"]["scans_received"]) - int(got["status"]["scans_received"]) == 2, big
+    assert int(big["status"]["scans_judged"]) == int(big["status"]["scans_received"]), big
+    assert big["status"]["scans_lost"] == "0" and big["status"]["dds_message_lost_events"] == "0", big
     assert any("scan subscription now reliable" in ln for ln in auto.lines), auto.lines[-20:]
 
     with NodeProcess(base_env=env, node_name="judge_be", params={"reliability": "best_effort"}).start(timeout=90):

@@ -64,6 +64,23 @@ def test_wheel_carries_interfaces_libraries_config_and_model(tmp_path: Path):
         assert must in names, must
     for m in ("default", "posed"):
         assert any(n.startswith(f"xmetro_ros/models/{m}/") and n.endswith(".onnx") for n in names), m
+    # tf2_msgs (no wheel exists): where setup.py built it from vendor/tf2_msgs, the wheel ships it like our own
+    # interfaces (the package with its typesupport extensions, the libraries and share/ files as data files).
+    import tf2_msgs
+
+    if ROOT in Path(tf2_msgs.__file__).resolve().parents:
+        for must in ("tf2_msgs/__init__.py", "tf2_msgs/msg/__init__.py", "tf2_msgs/msg/_tf_message.py",
+                     "tf2_msgs/msg/_tf2_error.py", f"{data}/data/share/ament_index/resource_index/packages/tf2_msgs",
+                     f"{data}/data/share/tf2_msgs/msg/TFMessage.msg", f"{data}/data/share/tf2_msgs/msg/TFMessage.json",
+                     f"{data}/data/share/tf2_msgs/package.xml"):
+            assert must in names, must
+        for lib in ("rosidl_generator_c", "rosidl_generator_py", "rosidl_typesupport_c",
+                    "rosidl_typesupport_fastrtps_c", "rosidl_typesupport_introspection_c"):
+            assert f"{data}/data/lib/libtf2_msgs__{lib}.so" in names, lib
+        for ext in ("rosidl_typesupport_c", "rosidl_typesupport_fastrtps_c", "rosidl_typesupport_introspection_c"):
+            assert any(n.startswith(f"tf2_msgs/tf2_msgs_s__{ext}") and n.endswith(".so") for n in names), ext
+    else:  # an installed tf2_msgs (a ROS 2 system): nothing vendored, nothing shadowing it
+        assert not any(n.startswith("tf2_msgs/") or "/data/lib/libtf2_msgs__" in n for n in names)
     # Runtime install lean: PyTorch and the other training-only packages only under the [train] extra.
     meta = next(n for n in names if n.endswith(".dist-info/METADATA"))
     requires = [ln.split(":", 1)[1].strip() for ln in zipfile.ZipFile(wheel).read(meta).decode().splitlines()

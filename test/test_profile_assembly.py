@@ -345,7 +345,7 @@ def test_a_pause_cuts_a_count_scan_short():
 def test_min_rows_max_rows_and_bad_profiles():
     rig = Rig(duration_ms=300)
     asm = ProfileAssembler(rig.buffer(), "world", ScanTrigger("gap", gap_s=0.01), min_rows=5, max_rows=40)
-    bad = [Profile(1000 * MS, "sensor", np.zeros((4, 2))), Profile(1001 * MS, "sensor", np.zeros((0, 3))),
+    bad = [Profile(1000 * MS, "sensor", np.zeros((4, 2))), Profile(1001 * MS, "sensor", np.zeros((4, 3, 1))),
            Profile(1002 * MS, "sensor", np.zeros((4, 3)), {"i": np.zeros(3)})]
     scans = _run(asm, _stream(rig, [*range(0, 3), *range(50, 100)]) + bad)
     assert [(s.shape[0], s.end) for s in scans] == [(40, ScanEnd.MAX_ROWS)]

@@ -324,7 +324,42 @@ def block_real_data() -> str:
     return "\n".join(out) + "\n"
 
 
+def block_profile_bench() -> str:
+    """The profile stream into a real node process (``bench/results/profiles.json``, ``make bench``)."""
+    s = _load("bench/results/profiles.json")
+    out = ["| mode | rate | received / sent | judged | dropped | lost | judged points/s | latency p50 / p99 |",
+           "|---|---|---|---|---|---|---|---|"]
+    for r in s["runs"]:
+        rate = f"{r['rate_hz'] / 1000:g} kHz" if r["rate_hz"] >= 1000 else f"{r['rate_hz']:g} Hz"
+        out.append(f"| {r['mode']} | {rate} | {r['profiles_received']:,} / {r['profiles_sent']:,} | "
+                   f"{r['profiles_judged']:,} | {r['profiles_dropped']:,} | {r['profiles_lost']:,} | "
+                   f"{r['judged_points_per_s']:,} | {r['latency_ms_p50'] / 1000:.2f} / "
+                   f"{r['latency_ms_p99'] / 1000:.2f} s |")
+    balanced = all(r["accounting_balanced"] for r in s["runs"])
+    out += ["", _para(
+        f"{s['machine']}; {2048:,} points a profile, {s['runs'][0]['seconds']:g} s a run. Received = judged + "
+        f"dropped + waiting in {'every run' if balanced else 'NOT every run'}; sent = received + lost. Source: "
+        "`bench/results/profiles.json`, written by `python bench/bench_profiles.py` (`make bench`).")]
+    return "\n".join(out) + "\n"
+
+
+def block_streaming_accuracy() -> str:
+    """A pass judged in chunks with context vs whole (``bench/results/profiles.json``, ``streaming_accuracy``)."""
+    s = _load("bench/results/profiles.json")["streaming_accuracy"]
+    out = ["| chunk (context) | flags agree | median / max abs(Δd) | MAE vs the systematic error: whole → chunked |",
+           "|---|---|---|---|"]
+    for r in s["runs"]:
+        out.append(f"| {r['chunk_rows']} ({r['context_rows']}) profiles | {r['flags_same'] * 100:.2f} % | "
+                   f"{r['abs_dd_um_p50']:.1f} / {r['abs_dd_um_max']:.1f} µm | {r['mae_truth_um_whole']:.2f} → "
+                   f"{r['mae_truth_um_chunked']:.2f} µm |")
+    out += ["", _para(f"{s['pass']}, the shipped model. Source: `bench/results/profiles.json`, written by "
+                      "`python bench/bench_profiles.py` (`--accuracy-only` for this table alone).")]
+    return "\n".join(out) + "\n"
+
+
 BLOCKS: dict[str, Callable[[], str]] = {
+    "profile-bench": block_profile_bench,
+    "streaming-accuracy": block_streaming_accuracy,
     "study-mae": block_study_mae,
     "default-card": block_default_card,
     "parts": block_parts,

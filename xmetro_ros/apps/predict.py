@@ -24,6 +24,7 @@ from ..ros.node_outputs import (
     POINTCLOUD2,
     QUALITY_TYPE,
     SETTINGS_TYPE,
+    TF_TYPE,
     OutputSet,
     TopicError,
     classify_topics,
@@ -163,6 +164,7 @@ def predict_bag(
     from ..bag.writer import BagWriter
     from ..ros.cdr_canonical import canonical_cdr
     from ..ros.core import XmetroCore
+    from ..ros.profile_stream import error_quality, stream_from_values
 
     t_start = time.monotonic()
     if Path(out).exists():
@@ -203,7 +205,60 @@ def predict_bag(
         if core.cad is not None:  # the cad_mesh parameter (--param cad_mesh=PART.stl): the node's ~/cad_deviations
             out_topics["cad"] = f"{ns}/cad_deviations"
             w.add_topic(out_topics["cad"], POINTCLOUD2, [qos_profiles.cloud_output()])
-        for m in reader.messages(topics=set(scan_topics) | set(settings_topics)):
+        # profile_input: the PointCloud2 topics are profile streams, posed by the bag's /tf and /tf_static and
+        # assembled as the node does (xmetro_ros.ros.profile_stream); their scans are judged with each row's pose.
+        stream = stream_from_values(values) if values["profile_input"] else None
+        tf_topics = {t: t == "/tf_static" for t, ty in bag_topics.items() if ty == TF_TYPE} if stream else {}
+        if stream is not None:
+            w.add_topic("/profiles", POINTCLOUD2, _recorded_qos(reader, scan_topics) or [qos_profiles.CLOUD])
+            for t in tf_topics:
+                w.add_topic(t, TF_TYPE, _recorded_qos(reader, [t]) or [qos_profiles.SETTINGS])
+            if not tf_topics:
+                res.notes.append("profile_input: the bag has no /tf or /tf_static: no profile can be posed")
+
+        def judged(o: Any, log_ns: int, topic: str) -> None:
+            if deterministic:
+                o.quality.processing_latency = 0.0
+            for kind in ("deviations", "corrected"):
+                if kind in include and getattr(o, kind) is not None:
+                    w.write(out_topics[kind], enc(getattr(o, kind)), log_ns)
+            w.write(out_topics["quality"], enc(o.quality), log_ns)
+            if o.cad is not None:
+                w.write(out_topics["cad"], enc(o.cad), log_ns)
+            elif o.cad_error:
+                res.notes.append(f"scan at log time {log_ns} ns: {o.cad_error}")
+            res.outputs.append(OutputSet(o.quality, o.deviations if keep_clouds else None,
+                                         o.corrected if keep_clouds else None))
+            res.inputs.append(topic)
+            if log is not None:
+                log(f"#{len(res.outputs) - 1} {topic}: {o.log}")
+
+        def streamed(scans: list[Any], errors: list[Any], log_ns: int, topic: str) -> None:
+            assert stream is not None
+            for scan in scans:
+                msg, posed = core.posed_input(scan)
+                judged(core.judge(msg, posed=posed), log_ns, topic)
+                stream.done(posed.profiles, judged=True)
+            for err in errors:
+                w.write(out_topics["quality"], enc(error_quality(err, core.model_id)), log_ns)
+                res.notes.append(f"{err.code}: {err.message}")
+
+        last_ns = 0
+        for m in reader.messages(topics=set(scan_topics) | set(settings_topics) | set(tf_topics)):
+            last_ns = m.log_time_ns
+            if m.topic in tf_topics:
+                assert stream is not None
+                if "inputs" in include:
+                    w.write(m.topic, m.raw, m.log_time_ns)
+                scans, errors, _refused = stream.tf(m.msg, tf_topics[m.topic], m.log_time_ns / 1e9)
+                streamed(scans, errors, m.log_time_ns, m.topic)
+                continue
+            if stream is not None and m.topic in scan_topics:
+                if "inputs" in include:
+                    w.write("/profiles", m.raw, m.log_time_ns)
+                streamed(*stream.profile(m.msg, m.log_time_ns / 1e9), m.log_time_ns, m.topic)
+                streamed(*stream.poll(m.log_time_ns / 1e9), m.log_time_ns, m.topic)
+                continue
             if m.topic in settings_topics:
                 err = core.add_settings(m.msg)
                 res.settings_seen += 1
@@ -214,22 +269,10 @@ def predict_bag(
                 continue
             if "inputs" in include:
                 w.write("/scan", m.raw, m.log_time_ns)
-            o = core.judge(m.msg)
-            if deterministic:
-                o.quality.processing_latency = 0.0
-            for kind in ("deviations", "corrected"):
-                if kind in include and getattr(o, kind) is not None:
-                    w.write(out_topics[kind], enc(getattr(o, kind)), m.log_time_ns)
-            w.write(out_topics["quality"], enc(o.quality), m.log_time_ns)
-            if o.cad is not None:
-                w.write(out_topics["cad"], enc(o.cad), m.log_time_ns)
-            elif o.cad_error:
-                res.notes.append(f"scan at log time {m.log_time_ns} ns: {o.cad_error}")
-            res.outputs.append(OutputSet(o.quality, o.deviations if keep_clouds else None,
-                                         o.corrected if keep_clouds else None))
-            res.inputs.append(m.topic)
-            if log is not None:
-                log(f"#{len(res.outputs) - 1} {m.topic}: {o.log}")
+            judged(core.judge(m.msg), m.log_time_ns, m.topic)
+        if stream is not None:  # the bag's end ends the stream: the open scan is judged, held profiles reported
+            streamed(*stream.flush(last_ns / 1e9), last_ns, "/profiles")
+            res.notes.append("profiles: " + ", ".join(f"{k} {v}" for k, v in stream.values().items()))
     res.losses = describe_loss(reader.report)
     res.wall_s = time.monotonic() - t_start
     return res

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from ..scan.geometry import HeadPose
+from ..scan.geometry import HeadPose, RowPoses
 from ..scan.scan import Scan
 from ..scan.scanner import ScannerModel, SettingsError
 from . import flags as fl
@@ -59,7 +59,8 @@ FOREIGN_FRACTION = 0.10
 FOREIGN_CHECK_POINTS = 4096
 
 
-def foreign_scan_reason(points: np.ndarray, pose: HeadPose | None, scanner: ScannerModel) -> str:
+def foreign_scan_reason(points: np.ndarray, pose: HeadPose | None, scanner: ScannerModel,
+                        posed: tuple[np.ndarray, RowPoses] | None = None) -> str:
     """Why the finite ``points`` (N, 3) mm cannot be a scan of ``scanner`` from ``pose`` ('' when they can).
 
     The distance of a point from the laser source in the laser plane (``point_geometry``'s source distance: the
@@ -275,7 +276,9 @@ def cap_points(scan: Scan, max_points: int, overflow: str) -> tuple[Scan, np.nda
     exp = None if scan.expected_error is None else np.asarray(scan.expected_error).reshape(-1, 3)[keep]
     std = None if scan.noise_std is None else np.asarray(scan.noise_std).reshape(-1, 3)[keep]
     inj = None if scan.injected_outlier is None else np.asarray(scan.injected_outlier).reshape(-1)[keep]
-    return replace(scan, points=pts, fields=fields, expected_error=exp, noise_std=std, injected_outlier=inj), keep
+    rp = None if scan.row_poses is None else scan.row_poses.take(keep)
+    return replace(scan, points=pts, fields=fields, expected_error=exp, noise_std=std, injected_outlier=inj,
+                   row_poses=rp), keep
 
 
 #: A scan is judged by the pose model only when more than this share of its points lies outside the primary model's
@@ -393,7 +396,10 @@ class ScanHandler:
             raise ScanError("MISSING_INPUT_FIELD", f"the model needs per-point field(s) {', '.join(missing)} "
                                                    f"that the cloud lacks (has: {', '.join(sorted(scan.fields))})")
         valid_pts = scan.points.reshape(-1, 3)[valid.reshape(-1)]
-        foreign = foreign_scan_reason(valid_pts, scan.pose, self.scanner)
+        posed = None
+        if scan.row_poses is not None:
+            posed = (scan.row_poses.rows.reshape(-1)[valid.reshape(-1)], scan.row_poses)
+        foreign = foreign_scan_reason(valid_pts, scan.pose, self.scanner, posed)
         if foreign:
             raise ScanError("NOT_A_LASER_SCAN", foreign)
         one_profile = single_profile_reason(valid_pts, scan.pose, float(scan.settings.direction_density),
@@ -475,6 +481,57 @@ class ScanHandler:
         return ScanResult(deviations=dev, flags=flags, quality=quality, prepared=prepared, features=X,
                           predictions=pred, context=ctx, scan=scan, kept=kept, uncertainty=unc, row_uncertainty=U,
                           decisions=decisions, shape_out_of_domain=shape_ood, model_id=model_id)
+
+    def crop_rows(self, res: ScanResult, start: int, stop: int, settings_defaulted: bool = False) -> ScanResult:
+        """The result of rows ``start:stop`` of an organized scan judged whole (a profile stream's chunk judged with
+        context rows on both sides, so that its border rows have their neighbours): every per-point array cut to
+        those rows, the kept points' arrays to the kept points in them, and the summary and verdict over them
+        alone. A decimated result (``kept``) cannot be cut: ValueError."""
+        from dataclasses import replace as _replace
+
+        scan = res.scan
+        if res.kept is not None or not scan.organized:
+            raise ValueError("only an organized, undecimated result can be cut to rows")
+        h, w = scan.shape
+        if not 0 <= start < stop <= h:
+            raise ValueError(f"rows {start}:{stop} outside the scan's {h}")
+        lo, hi = start * w, stop * w
+        prep = res.prepared
+        idx = np.asarray(prep.index, dtype=np.int64)
+        m = (idx >= lo) & (idx < hi)
+        g = prep.geometry
+        geom = type(g)(**{k: getattr(g, k)[m] for k in ("L", "V", "source_distance", "standoff", "u", "s")})
+        out = np.asarray(prep.outlier, dtype=np.int64)
+        prepared = _replace(prep, points=prep.points[m], normals=prep.normals[m], normal_quality=prep.normal_quality[m],
+                            index=idx[m] - lo, outlier=out[(out >= lo) & (out < hi)] - lo,
+                            fields={k: v[m] for k, v in prep.fields.items()}, geometry=geom, shape=(stop - start, w))
+        sl = slice(lo, hi)
+        def rows(a: np.ndarray | None) -> np.ndarray | None:
+            return None if a is None else a[start:stop]
+
+        rp = scan.row_poses
+        if rp is not None:
+            rp = type(rp)(rp.positions, rp.rotations, rp.rows[start:stop])
+        scan_c = _replace(scan, points=scan.points[start:stop], row_poses=rp, expected_error=rows(scan.expected_error),
+                          noise_std=rows(scan.noise_std), injected_outlier=rows(scan.injected_outlier),
+                          fields={k: v[start:stop] for k, v in scan.fields.items()})
+        flags, pred = res.flags[sl], res.predictions[m]
+        U = res.row_uncertainty[m] if res.row_uncertainty is not None else np.full_like(pred, np.nan)
+        decisions = res.decisions[sl] if res.decisions is not None else None
+        finite = np.isfinite(pred).all(axis=1)
+        has_u = finite & np.isfinite(U).all(axis=1)
+        cls = decisions[idx[m] - lo] if decisions is not None else None
+        n_valid = int(np.count_nonzero(scan_c.valid_mask()))
+        quality = self.summarize(flags, pred, n_valid, settings_defaulted, False, (stop - start) * w, finite=finite,
+                                 U=U[has_u], decisions=cls[finite] if cls is not None else None,
+                                 model_id=res.model_id)
+        ctx = res.context.subset(m) if res.context is not None else None
+        return _replace(res, deviations=res.deviations[sl], flags=flags, quality=quality, prepared=prepared,
+                        features=res.features[m], predictions=pred, context=ctx, scan=scan_c,
+                        uncertainty=None if res.uncertainty is None else res.uncertainty[sl],
+                        row_uncertainty=None if res.row_uncertainty is None else res.row_uncertainty[m],
+                        decisions=decisions,
+                        shape_out_of_domain=None if res.shape_out_of_domain is None else res.shape_out_of_domain[m])
 
     def _shape_out_of_domain(self, prepared: Any, model: Any) -> np.ndarray | None:
         """(M,) bool: kept points whose mean curvature lies outside the model's shape domain widened by

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..scan.geometry import point_geometry
+from ..scan.geometry import point_geometry, point_geometry_posed
 from ..scan.scan import Scan
 from ..scan.scanner import ScannerModel
 from .config import Prepared, PreprocessConfig, PreprocessError
@@ -104,7 +104,12 @@ def prepare_scan(
             normals, quality = nk[sel], qk[sel]  # NaN (undefined) normals get L and quality 0 below
         else:
             normals, quality = estimate_normals(points, radius_mm=cfg.normal_radius_mm, max_nn=cfg.max_nn)
-    geom = point_geometry(points, scan.pose, scanner.camera_mm, dtype=np.float32)
+    if scan.row_poses is None:
+        geom = point_geometry(points, scan.pose, scanner.camera_mm, dtype=np.float32)
+    else:  # each point from the pose of the profile that measured it (a stream posed by /tf)
+        rp = scan.row_poses
+        geom = point_geometry_posed(points, rp.rows.reshape(-1)[index], rp, scanner.camera_mm, scan.pose,
+                                    dtype=np.float32)
     # Orient toward the laser source (outward on the lit side of a closed artifact); undefined normals → L, q = 0.
     if grid and cfg.grid_backend == "numba":
         from .grid_kernels import orient_rows

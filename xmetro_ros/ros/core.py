@@ -12,6 +12,7 @@ import math
 import threading
 import time
 from collections import deque
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -23,12 +24,21 @@ from ..judge.scan_handler import ScanError, ScanHandler, check_deadline
 from ..judge.scan_history import JudgedScan, ScanHistory, ServiceError, axes_from_mask, explain_rows, select_rows
 from ..monitor.reference_check import ReferenceChecker, ReferenceResult, ReferenceSpec, live_candidates
 from ..msg import ReferenceCheck, ScannerSettings, ScanQuality
+from ..scan.assembly import AssembledScan
 from ..scan.geometry import HeadPose
 from ..scan.scanner import ScannerModel, ScanSettings, SettingsError
 from ..scan.targets import published_deviation
 from ..srv import Explain, RecommendSettings
 from .cloud import CloudFormatError, validate_cloud, xyz_fields
-from .convert import cloud_to_scan, m_to_mm, pose7_to_matrix_mm, settings_from_msg, settings_to_msg, stamp_to_ns
+from .convert import (
+    cloud_to_scan,
+    m_to_mm,
+    ns_to_stamp,
+    pose7_to_matrix_mm,
+    settings_from_msg,
+    settings_to_msg,
+    stamp_to_ns,
+)
 from .messages import (
     error_code_value,
     explain_response,
@@ -41,6 +51,7 @@ from .messages import (
 from .output_clouds import cad_cloud, corrected_cloud, deviations_cloud
 from .output_clouds import warm_up as warm_output_kernels
 from .params import handler_params
+from .posed_scans import PosedScan, assembled_input, choose_settings
 
 __all__ = ["LEGACY_SCANNER_ID", "CoreOutput", "SettingsEntry", "XmetroCore", "load_cad", "model_scanner_id",
            "reference_checker"]
@@ -202,6 +213,20 @@ class XmetroCore:
         msg = settings_to_msg(s, pose, frame_id, stamp_ns, self.scanner.id)
         return SettingsEntry(stamp_ns, msg, s, pose, self.scanner.id, frame_id, "")
 
+    def posed_input(self, scan: AssembledScan, driver: Mapping[str, float] | None = None
+                    ) -> tuple[PointCloud2, PosedScan]:
+        """What :meth:`judge` takes for a scan assembled from profiles: its organized cloud and
+        :class:`~xmetro_ros.ros.posed_scans.PosedScan`, with the settings chosen as that module says (a valid
+        ScannerSettings stamped at or before the first profile, else the driver's values, the measured densities
+        and the defaults)."""
+        entry = self.settings_for(int(scan.stamps_ns[0]))
+        topic = entry.settings if entry is not None and not entry.error else None
+        v = self.values
+        defaults = ScanSettings.from_si(v["default_lateral_density"], v["default_direction_density"],
+                                        v["default_exposure_time"])
+        settings, defaulted, note = choose_settings(scan, topic, driver, defaults, self.scanner)
+        return assembled_input(scan, settings, defaulted, note, self.scanner.id)
+
     # ------------------------------------------------------------------ judging
     def _error(self, q: ScanQuality, code: str, message: str, n: int, t0: float) -> CoreOutput:
         q.verdict = ScanQuality.VERDICT_ERROR
@@ -221,7 +246,7 @@ class XmetroCore:
         return self._error(q, code, message, int(msg.width) * int(msg.height), t0)
 
     def judge(self, msg: PointCloud2, t0: float | None = None, deadline: float | None = None,
-              reference: bool = False) -> CoreOutput:
+              reference: bool = False, posed: PosedScan | None = None) -> CoreOutput:
         """Judge one cloud; ``t0`` = monotonic receipt time (for processing_latency). Never raises for bad input.
 
         ``reference``: the cloud is a scan of the reference sphere (``reference_scan`` topic): once judged it is
@@ -232,22 +257,32 @@ class XmetroCore:
         ``deadline`` (``time.monotonic()`` seconds; None = no bound): checked between stages; past it the scan is
         abandoned with ERROR ``TIMEOUT`` (a stage under way is not interrupted). The live node passes now +
         ``max_processing_time``; ``xmetro predict`` passes none, so offline outputs never depend on the machine's speed.
+
+        ``posed``: ``msg`` is a scan assembled from profiles (:mod:`xmetro_ros.ros.posed_scans`): judged with each
+        row's own head pose and the settings chosen for it; no frame check (its poses come from tf).
         """
         t0 = time.monotonic() if t0 is None else t0
-        out, res = self._judge(msg, t0, deadline)
+        out, res = self._judge(msg, t0, deadline, posed)
         if reference:
             out.reference = self._check_reference(msg, res, out)
         return out
 
-    def _judge(self, msg: PointCloud2, t0: float, deadline: float | None) -> tuple[CoreOutput, Any]:
+    def _judge(self, msg: PointCloud2, t0: float, deadline: float | None,
+               posed: PosedScan | None = None) -> tuple[CoreOutput, Any]:
         """``judge`` without the reference check: the messages and the ScanResult (None when in ERROR)."""
         stamp_ns = stamp_to_ns(msg.header.stamp)
         n = int(msg.width) * int(msg.height)
-        entry = self.settings_for(stamp_ns)
-        defaulted = entry is None
-        if entry is None:
-            entry = self.default_entry(msg.header.frame_id, stamp_ns)
+        if posed is not None:
+            entry = SettingsEntry(stamp_ns, posed.settings_msg, posed.settings, posed.row_poses.first(),
+                                  self.scanner.id, msg.header.frame_id, "")
+            defaulted = posed.defaulted
+        else:
+            found = self.settings_for(stamp_ns)
+            defaulted = found is None
+            entry = found if found is not None else self.default_entry(msg.header.frame_id, stamp_ns)
         q = new_quality(msg.header, self.model_id, entry.msg, defaulted)
+        if posed is not None and posed.rows is not None:  # its outputs, an error's too, carry its own rows' stamp
+            q.header = type(msg.header)(stamp=ns_to_stamp(posed.stamp_ns), frame_id=msg.header.frame_id)
         try:
             if self.model is None:
                 return self._error(q, "MODEL_UNAVAILABLE", self.degraded, n, t0), None
@@ -256,13 +291,21 @@ class XmetroCore:
             if entry.error:
                 return self._error(q, "INVALID_SETTINGS", f"settings stamped {entry.stamp_ns} ns are invalid: "
                                                           f"{entry.error}", n, t0), None
-            if self.values["check_frame"] and not defaulted and entry.frame_id != msg.header.frame_id:
+            if self.values["check_frame"] and posed is None and not defaulted \
+                    and entry.frame_id != msg.header.frame_id:
                 return self._error(q, "FRAME_MISMATCH", f"scan frame {msg.header.frame_id!r} differs from the "
                                                         f"settings' frame {entry.frame_id!r}", n, t0), None
             if entry.settings is None or entry.pose is None:  # only invalid entries lack them (handled above)
                 return self._error(q, "INVALID_SETTINGS", "settings without values", n, t0), None
             scan = cloud_to_scan(msg, entry.settings, entry.pose, self.scanner.id)
+            if posed is not None:
+                scan = replace(scan, row_poses=posed.row_poses)
             res = self.handler.process(scan, settings_defaulted=defaulted, deadline=deadline)
+            if posed is not None and posed.rows is not None:  # a chunk judged with context rows: its own rows
+                res = self.handler.crop_rows(res, *posed.rows, settings_defaulted=defaulted)
+                msg = cloud_rows(msg, *posed.rows, posed.stamp_ns)
+                q.header = msg.header
+                stamp_ns, n = posed.stamp_ns, int(msg.width) * int(msg.height)
             check_deadline(deadline, "encoding the outputs")
         except CloudFormatError as e:
             return self._error(q, e.code, str(e), n, t0), None
@@ -272,7 +315,11 @@ class XmetroCore:
             return self._error(q, "INTERNAL", f"{type(e).__name__}: {e}", n, t0), None
 
         try:
-            return self._outputs(msg, q, res, entry, stamp_ns, t0), res
+            out = self._outputs(msg, q, res, entry, stamp_ns, t0)
+            if posed is not None:
+                out.quality.message = f"{out.quality.message}; {posed.note}"
+                out.log = f"{out.log}; {posed.note}"
+            return out, res
         except Exception as e:
             return self._error(q, "INTERNAL", f"encoding the outputs failed: {type(e).__name__}: {e}", n, t0), None
 
@@ -438,6 +485,18 @@ class XmetroCore:
         if self.cad is None or judged.cad_pose is None:
             return None
         return self.cad.transformed(judged.cad_pose)
+
+
+def cloud_rows(msg: PointCloud2, start: int, stop: int, stamp_ns: int) -> PointCloud2:
+    """Rows ``start:stop`` of an organized cloud, stamped ``stamp_ns`` (one copy of those rows' bytes)."""
+    from copy import copy
+
+    out = copy(msg)
+    out.header = type(msg.header)(stamp=ns_to_stamp(stamp_ns), frame_id=msg.header.frame_id)
+    out.height = stop - start
+    step = int(msg.row_step)
+    out.data = bytes(msg.data)[start * step: stop * step]
+    return out
 
 
 def load_cad(values: dict[str, Any]) -> tuple[Any, str]:

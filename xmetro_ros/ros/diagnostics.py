@@ -105,6 +105,12 @@ class DiagnosticsState:
         self._times: deque[float] = deque(maxlen=1000)
         self._lock = threading.Lock()
         self.published_level: int | None = None
+        # Profile streams (profile_input): their accounting, shown as values, and the latest drop (WARN for
+        # loss_warn_period); their scans' settings come from the stream, so no ScannerSettings is expected.
+        self.profile_values: dict[str, Any] = {}
+        self.profile_problem = ""
+        self._last_profile_problem: float | None = None
+        self.settings_from_stream = False
 
     # ------------------------------------------------------------------ events
     def on_received(self) -> None:
@@ -176,6 +182,14 @@ class DiagnosticsState:
         with self._lock:
             self.reference_state, self.reference_message, self.reference_scans = None, "", 0
 
+    def on_profiles(self, values: dict[str, Any], problem: str = "") -> None:
+        """The profile stream's accounting (values shown as they are) and, when given, a drop just reported."""
+        with self._lock:
+            self.profile_values = dict(values)
+            if problem:
+                self.profile_problem = problem
+                self._last_profile_problem = time.monotonic()
+
     def counters(self) -> dict[str, int]:
         """The scan accounting now: received, judged, dropped, lost."""
         with self._lock:
@@ -190,7 +204,7 @@ class DiagnosticsState:
             out.append((ERROR, f"degraded: {self.degraded}"))
         if self.stalled:
             out.append((ERROR, self.stalled))
-        if self.received and not self.settings_received:
+        if self.received and not self.settings_received and not self.settings_from_stream:
             out.append((ERROR, "no ScannerSettings ever arrived: every scan runs on the configured defaults"))
         since = now - (self._last_scan if self._last_scan is not None else self._start)
         if since > self.scan_timeout:
@@ -198,6 +212,8 @@ class DiagnosticsState:
             out.append((WARN, f"stale: {what} {since:.1f} s (scan_timeout {self.scan_timeout:g} s)"))
         if self._last_loss is not None and now - self._last_loss <= self.loss_warn_period:
             out.append((WARN, lost_scans_reason(self.lost, self.dds_lost_events, self.scan_reliability)))
+        if self._last_profile_problem is not None and now - self._last_profile_problem <= self.loss_warn_period:
+            out.append((WARN, self.profile_problem))
         if self.pose_model_error:
             out.append((WARN, self.pose_model_error))
         if self.cad_error:
@@ -261,6 +277,7 @@ class DiagnosticsState:
                 "reference_scans": self.reference_scans,
                 "reference_message": self.reference_message or "none",
                 "cad": self.cad_error or self.cad_state,
+                **self.profile_values,
             }
         st = DiagnosticStatus(level=_level_value(lvl), name=self.name, message=msg[:500],
                               hardware_id=self.hardware_id)

@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import os
 import time
-from collections import OrderedDict
 from typing import Any
 
 import rclpy
@@ -59,7 +58,8 @@ from . import params as node_params
 from .convert import stamp_to_ns
 from .core import XmetroCore
 from .diagnostics import DiagnosticsState
-from .rclpy_util import READY_MESSAGE
+from .profile_input import ProfileInput
+from .rclpy_util import READY_MESSAGE, SequenceGaps
 from .services import ServiceHandlers
 from .worker import ScanWorker
 
@@ -115,7 +115,7 @@ def output_qos(depth: int = 10) -> QoSProfile:
 
 # The wiring (with its worker and service mixins, type-checked as Nodes) is a mixin of rclpy Node subclasses
 # (plain and lifecycle).
-class XmetroWiring(ScanWorker, ServiceHandlers):
+class XmetroWiring(ProfileInput, ScanWorker, ServiceHandlers):
     """The node's wiring (parameters, publishers, subscriptions, services, worker), shared by :class:`XmetroNode`
     and ``lifecycle_node.XmetroLifecycleNode``. Mixed into an ``rclpy.node.Node`` subclass; the steps are split so
     that the lifecycle node can run them from its transitions: :meth:`_init_wiring` (parameters, in ``__init__``),
@@ -133,7 +133,7 @@ class XmetroWiring(ScanWorker, ServiceHandlers):
         self._srv_group = ReentrantCallbackGroup()
         self._init_worker_state()
         # last sequence number seen per publisher (loss accounting)
-        self._last_seq: OrderedDict[bytes, int] = OrderedDict()
+        self._scan_gaps = SequenceGaps()
         self._inputs: list[Any] = []
         self._outputs: list[Any] = []
         self.timer_diag: Any = None
@@ -217,8 +217,10 @@ class XmetroWiring(ScanWorker, ServiceHandlers):
                                                        callback_group=self._srv_group)
         self._inputs = [self.sub_scan, self.sub_reference, self.sub_settings, self.sub_settings_volatile,
                         self.srv_explain, self.srv_recommend, self.action_recommend, self.srv_reset_reference]
+        if values["profile_input"]:
+            self._create_profile_inputs(values)
         # Sequence gaps count only while subscribed: what a publisher sent while the node was inactive was not lost.
-        self._last_seq.clear()
+        self._scan_gaps.clear()
         with self._cv:
             self._stop = False
             self._queue.clear()
@@ -279,6 +281,7 @@ class XmetroWiring(ScanWorker, ServiceHandlers):
         if self.timer_qos is not None:
             self.destroy_timer(self.timer_qos)
             self.timer_qos = None
+        self._destroy_profile_inputs()
         self._stop_worker()
 
     def _destroy_outputs(self) -> None:
@@ -338,24 +341,10 @@ class XmetroWiring(ScanWorker, ServiceHandlers):
             self.diag.on_lost(int(ev.total_count_change), dds_event=True)
 
     def _count_gaps(self, info: Any) -> None:
-        """Scans lost before the callback: gaps in the publisher's sequence numbers since its last received scan.
-        A publisher's first received scan sets its baseline (earlier ones may predate the subscription)."""
-        try:
-            seq = info.get("publication_sequence_number")
-            gid = info.get("publisher_gid")
-            key = bytes(gid["data"]) if gid else b""
-        except (AttributeError, KeyError, TypeError):
-            return
-        if seq is None or not key:
-            return
-        last = self._last_seq.get(key)
-        if last is not None and seq > last + 1 and self.diag is not None:
-            self.diag.on_lost(seq - last - 1)
-        if last is None or seq > last:
-            self._last_seq[key] = int(seq)
-            self._last_seq.move_to_end(key)
-            while len(self._last_seq) > 256:  # bounded: publishers come and go
-                self._last_seq.popitem(last=False)
+        """Scans lost before the callback (:class:`~xmetro_ros.ros.rclpy_util.SequenceGaps`)."""
+        lost = self._scan_gaps.add(info)
+        if lost and self.diag is not None:
+            self.diag.on_lost(lost)
 
     def _on_reference_scan(self, msg: PointCloud2, info: Any) -> None:
         self._on_scan(msg, info, reference=True)

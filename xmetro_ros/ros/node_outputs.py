@@ -25,6 +25,7 @@ __all__ = [
     "POINTCLOUD2",
     "QUALITY_TYPE",
     "SETTINGS_TYPE",
+    "TF_TYPE",
     "OutputSet",
     "Tolerance",
     "TopicError",
@@ -41,6 +42,7 @@ __all__ = [
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 SETTINGS_TYPE = "xmetro_ros/msg/ScannerSettings"
 QUALITY_TYPE = "xmetro_ros/msg/ScanQuality"
+TF_TYPE = "tf2_msgs/msg/TFMessage"
 DIAGNOSTICS_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
 OUTPUT_SUFFIXES = ("/deviations", "/corrected", "/quality")
 

@@ -137,6 +137,52 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("cad_register", False, "", "refine cad_pose on each scan by point-to-plane ICP on the compensated "
               "points (xmetro_ros/parts/registration.py; the fit is logged and the registered pose is used for that "
               "scan's map and its recommendation's occlusion)"),
+    # Profile streams (docs/profile-streams.md): what line-scanner drivers publish, assembled into scans here.
+    ParamSpec("profile_input", False, "", "also subscribe to profiles (one PointCloud2 per laser-line profile in the "
+              "sensor frame, metres, as line-scanner drivers publish them) and to /tf and /tf_static: the profiles "
+              "are posed by tf, assembled into scans in fixed_frame (scan_trigger) and judged with each profile's "
+              "own sensor pose", read_only=True),
+    ParamSpec("fixed_frame", "", "frame", "frame of the assembled scans and their outputs (the robot base, the "
+              "fixture or the part); required with profile_input", read_only=True),
+    ParamSpec("sensor_frame", "", "frame", "tf frame of the profiles' sensor (x along the laser line, z the range); "
+              "'' = each profile's header.frame_id", read_only=True),
+    ParamSpec("scan_trigger", "gap", "", "what makes a scan of the profiles: count (trigger_count profiles), window "
+              "(trigger_window seconds), gap (a pause longer than trigger_gap or the sensor slower than "
+              "trigger_min_speed ends it), signal (~/start_scan, ~/stop_scan or the scan_active topic)",
+              choices=("count", "window", "gap", "signal"), read_only=True),
+    ParamSpec("trigger_count", 500, "profiles", "profiles per scan (scan_trigger count)", 1, 1_000_000,
+              read_only=True),
+    ParamSpec("trigger_window", 0.5, "s", "scan duration (scan_trigger window)", 1e-3, 3600.0, read_only=True),
+    ParamSpec("trigger_gap", 0.05, "s", "a pause between profiles longer than this ends the scan (every trigger; "
+              "0 = no gap rule unless scan_trigger is gap)", 0.0, 3600.0, read_only=True),
+    ParamSpec("trigger_min_speed", 0.0, "m/s", "the sensor moving slower than this ends the scan and its profiles "
+              "are idle (0 = no speed rule)", 0.0, 100.0, read_only=True),
+    ParamSpec("stream_context_rows", 0, "profiles", "streaming (scan_trigger count or window): each chunk is judged "
+              "with this many profiles of the chunks before and after it, so that its border profiles have "
+              "neighbours for their normals, and only its own profiles are published (latency: up to two chunks "
+              "plus the judging); 0 = each scan judged on its own", 0, 1000, read_only=True),
+    ParamSpec("min_scan_rows", 10, "profiles", "an assembled scan with fewer profiles is not judged (its profiles "
+              "are counted dropped, ERROR SHORT_SCAN)", 1, 1_000_000, read_only=True),
+    ParamSpec("max_scan_rows", 20000, "profiles", "an assembled scan ends at this many profiles", 1, 1_000_000,
+              read_only=True),
+    ParamSpec("tf_timeout", 0.5, "s", "how long a profile waits for its tf (stream time) before it is dropped and "
+              "reported (ERROR TF_MISSING, TF_NOT_CONNECTED or TF_LATE)", 0.0, 60.0, read_only=True),
+    ParamSpec("tf_max_extrapolation", 0.0, "s", "how far past the newest (or before the oldest) tf sample a pose may "
+              "be extrapolated; 0 = interpolation only (a guess is never made)", 0.0, 1.0, read_only=True),
+    ParamSpec("tf_cache_time", 10.0, "s", "history of the transform buffer", 0.1, 3600.0, read_only=True),
+    ParamSpec("profile_columns", "index", "", "where a profile's points go in their scan row: index (point i in column "
+              "i: drivers that keep no-returns as +inf or NaN) or ray (by the ray that measured them: drivers that "
+              "drop no-returns, e.g. LMI Gocator bridges and the weCat3D Python publisher)",
+              choices=("index", "ray"), read_only=True),
+    ParamSpec("driver_mapping", "", "", "settings from the line-scanner driver's own ROS parameters, read at start "
+              "and followed on /parameter_events: a shipped mapping (scancontrol_lls, scancontrol_samxl; "
+              "config/drivers/) or a mapping YAML; '' = none (profile_input only; a ScannerSettings message still "
+              "wins)", read_only=True),
+    ParamSpec("driver_node", "", "", "the driver node whose parameters driver_mapping reads (e.g. /lls_driver); "
+              "'' = the mapping's default node", read_only=True),
+    ParamSpec("profile_min_range", 0.0, "m", "points of a profile with z below this are no return (a driver that "
+              "passes the sensor's out-of-range value through, e.g. ~0.0322 m on IGMR-RWTH/scancontrol_lls); 0 = "
+              "only non-finite points are", 0.0, 10.0, read_only=True),
 )
 _BY_NAME = {p.name: p for p in PARAMS}
 #: Parameters read when the model is loaded (read-only on the plain node; on the lifecycle node settable while
@@ -203,6 +249,11 @@ def validate(changes: dict[str, Any], current: dict[str, Any]) -> str | None:
             continue
         if spec.lo is not None and not isinstance(value, (bool, str)) and not spec.lo <= value <= spec.hi:
             return f"{name} = {value} is outside [{spec.lo:g}, {spec.hi:g}] {spec.unit}"
+    merged = {**current, **changes}
+    if merged.get("profile_input") and not str(merged.get("fixed_frame", "")).strip():
+        return "profile_input needs fixed_frame: the frame the profiles are assembled in (e.g. the robot base)"
+    if int(merged.get("stream_context_rows", 0) or 0) > 0 and merged.get("scan_trigger") not in ("count", "window"):
+        return "stream_context_rows needs scan_trigger count or window (a stream cut into chunks)"
     return None
 
 

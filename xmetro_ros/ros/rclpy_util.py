@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -18,9 +19,8 @@ from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 
 from .dds_env import apply_requested_ros_env, ros_env
 
-__all__ = ["READY_MESSAGE", "NodeMixin", "NodeProcess", "NodeSpinner", "ServiceTimeoutError", "call_service",
-           "new_context",
-           "wait_for"]
+__all__ = ["READY_MESSAGE", "NodeMixin", "NodeProcess", "NodeSpinner", "SequenceGaps", "ServiceTimeoutError",
+           "call_service", "new_context", "wait_for"]
 
 # The line xmetro_node logs once it is up (ros/node.py); NodeProcess waits for it.
 READY_MESSAGE = "xmetro_node ready"
@@ -235,3 +235,36 @@ class NodeProcess:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+class SequenceGaps:
+    """Messages lost before a subscription's callback: gaps in each publisher's sequence numbers since its last
+    received message (subscription history overflow, transport loss). A publisher's first received message sets its
+    baseline (earlier ones may predate the subscription); at most ``keep`` publishers are remembered."""
+
+    def __init__(self, keep: int = 256) -> None:
+        self._last: OrderedDict[bytes, int] = OrderedDict()
+        self._keep = keep
+
+    def add(self, info: Any) -> int:
+        """Take one message's info (rclpy's MessageInfo dict); return how many of its publisher's were lost."""
+        try:
+            seq = info.get("publication_sequence_number")
+            gid = info.get("publisher_gid")
+            key = bytes(gid["data"]) if gid else b""
+        except (AttributeError, KeyError, TypeError):
+            return 0
+        if seq is None or not key:
+            return 0
+        last = self._last.get(key)
+        lost = int(seq - last - 1) if last is not None and seq > last + 1 else 0
+        if last is None or seq > last:
+            self._last[key] = int(seq)
+            self._last.move_to_end(key)
+            while len(self._last) > self._keep:  # bounded: publishers come and go
+                self._last.popitem(last=False)
+        return lost
+
+    def clear(self) -> None:
+        """Forget every publisher (what was sent while not subscribed was not lost)."""
+        self._last.clear()

@@ -20,6 +20,7 @@ from ..msg import ReferenceCheck, ScanQuality
 from .convert import stamp_to_ns
 from .core import XmetroCore
 from .diagnostics import DiagnosticsState
+from .posed_scans import PosedScan
 from .rclpy_util import NodeMixin
 
 __all__ = ["ScanWorker"]
@@ -39,8 +40,8 @@ class ScanWorker(NodeMixin):
     _outputs: list[Any]
 
     def _init_worker_state(self) -> None:
-        # (scan, receipt time, from the reference_scan topic)
-        self._queue: deque[tuple[PointCloud2, float, bool]] = deque()
+        # (scan, receipt time, from the reference_scan topic, the PosedScan of a scan assembled from profiles)
+        self._queue: deque[tuple[PointCloud2, float, bool, PosedScan | None]] = deque()
         self._qmax = 1
         self._cv = threading.Condition()
         self._stop = False
@@ -48,12 +49,12 @@ class ScanWorker(NodeMixin):
         self._diag_lock = threading.Lock()
         # Watchdog state (under self._cv): the scan in processing (start, msg, t0, reference), the live worker's
         # token, abandoned worker threads still running.
-        self._busy: tuple[float, PointCloud2, float, bool] | None = None
+        self._busy: tuple[float, PointCloud2, float, bool, PosedScan | None] | None = None
         self._token: object = object()
         self._abandoned: list[threading.Thread] = []
 
     def _enqueue(self, core: XmetroCore, diag: DiagnosticsState, msg: PointCloud2, t0: float,
-                 reference: bool) -> None:
+                 reference: bool, posed: PosedScan | None = None) -> None:
         """Queue a received scan; when the queue is full the oldest is dropped, counted and answered
         ``QUEUE_OVERFLOW``."""
         dropped = None
@@ -63,13 +64,15 @@ class ScanWorker(NodeMixin):
             if len(self._queue) >= self._qmax:
                 dropped = self._queue.popleft()
                 diag.on_dropped()
-            self._queue.append((msg, t0, reference))
+            self._queue.append((msg, t0, reference, posed))
             self._update_queue_diag()
             self._cv.notify()
         if dropped is not None:
             text = f"the node's processing queue was full ({self._qmax}): scan dropped unjudged"
             self.get_logger().warning(f"{text} (stamp {stamp_to_ns(dropped[0].header.stamp)} ns)")
             self._publish_quality(core.unjudged(dropped[0], "QUEUE_OVERFLOW", text, dropped[1]).quality)
+            if dropped[3] is not None:
+                self._posed_done(dropped[3], judged=False)
 
     def _stop_worker(self) -> None:
         with self._cv:
@@ -101,11 +104,11 @@ class ScanWorker(NodeMixin):
                     self._cv.wait(0.5)
                 if self._stop or self._token is not token:
                     return
-                msg, t0, reference = self._queue.popleft()
-                self._busy = (time.monotonic(), msg, t0, reference)
+                msg, t0, reference, posed = self._queue.popleft()
+                self._busy = (time.monotonic(), msg, t0, reference, posed)
                 self._update_queue_diag()
             try:
-                self._process(msg, t0, token, reference)
+                self._process(msg, t0, token, reference, posed)
             except Exception as e:
                 try:
                     self.get_logger().error(f"unexpected failure while publishing: {type(e).__name__}: {e}")
@@ -117,12 +120,13 @@ class ScanWorker(NodeMixin):
                         self._busy = None
                         self._update_queue_diag()
 
-    def _process(self, msg: PointCloud2, t0: float, token: object, reference: bool = False) -> None:
+    def _process(self, msg: PointCloud2, t0: float, token: object, reference: bool = False,
+                 posed: PosedScan | None = None) -> None:
         core = self.core
         if core is None:
             return
         out = core.judge(msg, t0, deadline=time.monotonic() + float(core.values["max_processing_time"]),
-                         reference=reference)
+                         reference=reference, posed=posed)
         with self._cv:
             if self._token is not token:
                 return  # abandoned by the watchdog: its scan was already answered TIMEOUT
@@ -145,6 +149,8 @@ class ScanWorker(NodeMixin):
             self._publish_reference(out.reference)
         self._publish_cad(out)
         self._answer(q)
+        if posed is not None:
+            self._posed_done(posed, judged=True)
 
     def _publish_cad(self, out: Any) -> None:
         """Publish a scan's CAD map; a failed comparison is logged and goes to /diagnostics (WARN until the next
@@ -216,12 +222,14 @@ class ScanWorker(NodeMixin):
                                                "running (Python cannot stop one; its result will be discarded)") if x)
         diag.set_stalled(reason)
         if abandoned is not None:
-            start, msg, t0, _reference = abandoned
+            start, msg, t0, _reference, posed = abandoned
             text = (f"processing exceeded max_processing_time {bound:g} s: worker abandoned after "
                     f"{now - start:.1f} s, scan answered unjudged")
             self.get_logger().error(f"watchdog: {text} (stamp {stamp_to_ns(msg.header.stamp)} ns)")
             diag.on_timeout(abandoned_worker=True)
             self._answer(core.unjudged(msg, "TIMEOUT", text, t0).quality)
+            if posed is not None:
+                self._posed_done(posed, judged=True)  # answered (TIMEOUT), as a scan abandoned on the scan topic
 
     def _publish_diag(self) -> None:
         self._supervise()
@@ -231,6 +239,10 @@ class ScanWorker(NodeMixin):
                     self.pub_diag.publish(self.diag.build(self.get_clock().now().to_msg()))
             except Exception:
                 pass
+
+    def _posed_done(self, posed: PosedScan, judged: bool) -> None:
+        """A scan assembled from profiles was answered (``judged``) or dropped by the queue: the profile stream's
+        accounting (overridden by the profile input)."""
 
     def queue_length(self) -> int:
         return len(self._queue)

@@ -23,10 +23,12 @@ import numpy as np
 __all__ = [
     "HeadPose",
     "PointGeometry",
+    "RowPoses",
     "camera_vector",
     "matrix_to_quat",
     "orientation_grid",
     "point_geometry",
+    "point_geometry_posed",
     "quat_to_matrix",
     "rotation_xyz",
     "unit",
@@ -217,6 +219,96 @@ def point_geometry(points: np.ndarray, pose: HeadPose, camera_mm: float | Any,
             L[:, k] = r[k, 0] * lh[0] + r[k, 2] * lh[2]
             V[:, k] = r[k, 0] * vh[0] + r[k, 1] * vh[1] + r[k, 2] * vh[2]
     return PointGeometry(L=L, V=V, source_distance=dist, standoff=-z, u=x, s=y)
+
+
+@dataclass(frozen=True)
+class RowPoses:
+    """The head pose each point was measured from, for a scan whose head moved or turned along the pass in any way
+    (profiles assembled from a stream, each posed by /tf), instead of one pose translated along its own +Y.
+
+    Attributes:
+        positions: (P, 3) head origins (the laser source), mm, scan frame; one per profile.
+        rotations: (P, 3, 3) head orientations (columns = head X, Y, Z in the scan frame), proper rotations.
+        rows: int32 pose index of each point, the shape of the scan's points without the last axis ((H, W) for an
+            organized scan whose row i was taken from pose i).
+    """
+
+    positions: np.ndarray
+    rotations: np.ndarray
+    rows: np.ndarray
+
+    def __post_init__(self) -> None:
+        p = np.asarray(self.positions, dtype=np.float64)
+        r = np.asarray(self.rotations, dtype=np.float64)
+        rows = np.asarray(self.rows, dtype=np.int32)
+        if p.ndim != 2 or p.shape[1] != 3 or r.shape != (len(p), 3, 3) or len(p) == 0:
+            raise ValueError(f"row poses need positions (P, 3) and rotations (P, 3, 3), P >= 1; got {p.shape} and "
+                             f"{r.shape}")
+        if not (np.isfinite(p).all() and np.isfinite(r).all()):
+            raise ValueError("row poses must be finite")
+        ortho = np.abs(np.einsum("pki,pkj->pij", r, r) - np.eye(3)).max(axis=(1, 2))
+        if (ortho > 1e-6).any() or (np.linalg.det(r) < 0).any():
+            i = int(np.flatnonzero((ortho > 1e-6) | (np.linalg.det(r) < 0))[0])
+            raise ValueError(f"row pose {i}: the rotation is not a proper rotation matrix")
+        if rows.size and (rows.min() < 0 or rows.max() >= len(p)):
+            raise ValueError(f"row pose indices must lie in [0, {len(p)})")
+        object.__setattr__(self, "positions", p)
+        object.__setattr__(self, "rotations", r)
+        object.__setattr__(self, "rows", rows)
+
+    @classmethod
+    def per_row(cls, positions: np.ndarray, rotations: np.ndarray, width: int) -> RowPoses:
+        """Poses of an organized (H, ``width``) scan whose row i was taken from pose i."""
+        h = int(np.shape(positions)[0])
+        rows = np.repeat(np.arange(h, dtype=np.int32), int(width)).reshape(h, int(width))
+        return cls(np.asarray(positions), np.asarray(rotations), rows)
+
+    def __len__(self) -> int:
+        return int(self.positions.shape[0])
+
+    def first(self) -> HeadPose:
+        """The pose of the first profile (the scan's ``pose``: its start)."""
+        return HeadPose(self.positions[0], self.rotations[0])
+
+    def take(self, flat_index: np.ndarray) -> RowPoses:
+        """The same poses for the points ``flat_index`` of the scan (a decimated, unorganized copy)."""
+        return RowPoses(self.positions, self.rotations, self.rows.reshape(-1)[np.asarray(flat_index)])
+
+
+def point_geometry_posed(points: np.ndarray, pose_index: np.ndarray, poses: RowPoses, camera_mm: float | Any,
+                         start: HeadPose | None = None, dtype: type = np.float64) -> PointGeometry:
+    """:func:`point_geometry` with each point's own head pose (``poses``, ``pose_index`` (N,) into them).
+
+    Each point is taken into the head frame of the profile that measured it; the laser and camera directions come
+    from that frame, as in :func:`point_geometry` (the source on the point's head-Y line, the camera at
+    ``camera_mm`` from it). ``u`` and ``standoff`` are in that frame; ``s`` (the position along the scan) is the
+    head-Y coordinate in the frame of ``start`` (default: the first pose), as for a single-pose scan. For a pass in
+    which every pose is ``start`` moved along its own +Y, the result equals :func:`point_geometry` from ``start``
+    (within rounding).
+    """
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
+    idx = np.asarray(pose_index)
+    if idx.shape != (len(pts),):
+        raise ValueError(f"pose_index must have shape ({len(pts)},), got {idx.shape}")
+    first = start if start is not None else poses.first()
+    from .geometry_kernels import posed_geometry
+
+    n = len(pts)
+    out = np.empty((8, n), dtype=np.float64)  # L (3), V (3), source distance, x: one compiled pass, no GIL
+    s64 = np.empty(n, dtype=np.float64)
+    z = np.empty(n, dtype=np.float64)
+    posed_geometry(pts, idx.astype(np.int64, copy=False), poses.positions, poses.rotations,
+                   np.asarray(camera_vector(camera_mm), dtype=np.float64), first.position, first.rotation[:, 1].copy(),
+                   out, z, s64)
+    L: np.ndarray = np.ascontiguousarray(out[0:3].T, dtype=dtype)
+    V: np.ndarray = np.ascontiguousarray(out[3:6].T, dtype=dtype)
+    dist: np.ndarray = out[6].astype(dtype)
+    x: np.ndarray = out[7].astype(dtype)
+    z_out: np.ndarray = z.astype(dtype)
+    s: np.ndarray = s64.astype(dtype)
+    return PointGeometry(L=L, V=V, source_distance=dist, standoff=-z_out, u=x, s=s)
 
 
 def rotation_xyz(rx: float, ry: float, rz: float) -> np.ndarray:

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from .artifacts import Artifact
-from .geometry import HeadPose
+from .geometry import HeadPose, RowPoses
 from .scanner import ScanSettings
 
 __all__ = ["Scan"]
@@ -39,6 +39,9 @@ class Scan:
         injected_outlier: bool, shape of ``points[..., 0]``: spurious returns the simulator injected (their error
             is not described by ``noise_std``); simulated scans only.
         meta: free-form provenance (seed, effects, configuration index, ...), JSON-serialisable.
+        row_poses: the head pose of each profile when the head did not simply translate along its own +Y from
+            ``pose`` (profiles assembled from a stream, posed by /tf); None for a single-pose scan. ``pose`` is
+            then the first profile's.
     """
 
     points: np.ndarray
@@ -53,6 +56,7 @@ class Scan:
     meta: dict[str, Any] = field(default_factory=dict)
     noise_std: np.ndarray | None = None
     injected_outlier: np.ndarray | None = None
+    row_poses: RowPoses | None = None
 
     def __post_init__(self) -> None:
         p = np.asarray(self.points)
@@ -67,6 +71,8 @@ class Scan:
             raise ValueError("noise_std must have the shape of points")
         if self.injected_outlier is not None and np.shape(self.injected_outlier) != p.shape[:-1]:
             raise ValueError("injected_outlier must have the shape of points[..., 0]")
+        if self.row_poses is not None and np.shape(self.row_poses.rows) != p.shape[:-1]:
+            raise ValueError(f"row_poses.rows has shape {np.shape(self.row_poses.rows)}, expected {p.shape[:-1]}")
 
     @property
     def organized(self) -> bool:
