@@ -28,7 +28,8 @@ HAND_EYE_R = Rotation.from_euler("xyz", [2.0, -1.0, 3.0], degrees=True).as_matri
 HAND_EYE_T = np.array([0.012, -0.004, 0.085])
 
 
-def _t(r: np.ndarray, p: np.ndarray) -> np.ndarray:
+def transform(r: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """4×4 homogeneous transform from a rotation (3, 3) and a translation (3,)."""
     out = np.eye(4)
     out[:3, :3] = r
     out[:3, 3] = p
@@ -62,10 +63,10 @@ class SimPass:
         t = (np.asarray(t_ns, dtype=np.int64) - self.stamps_ns[0]) / 1e9
         p0 = self.sensor_poses[0, :3, 3]
         v = (self.sensor_poses[1, :3, 3] - p0) / self.period_s
-        he_inv = np.linalg.inv(_t(HAND_EYE_R, HAND_EYE_T))
+        he_inv = np.linalg.inv(transform(HAND_EYE_R, HAND_EYE_T))
         out = np.empty((len(t), 4, 4))
         for i, ti in enumerate(t):
-            out[i] = _t(self.sensor_poses[0, :3, :3], p0 + v * ti) @ he_inv
+            out[i] = transform(self.sensor_poses[0, :3, :3], p0 + v * ti) @ he_inv
         return out
 
     def tf_stamps(self, tf_ms: float = 4.0) -> np.ndarray:

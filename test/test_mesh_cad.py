@@ -55,13 +55,14 @@ def test_predict_cad_offline(tmp_path, handler: ScanHandler) -> None:
     from xmetro_ros.parts.cad_judge import cad_deviation
     from xmetro_ros.ros.scan_io import write_scans
     from xmetro_ros.scan.mesh import write_stl
+    from xmetro_ros.scan.part_pose import format_pose7
 
     cad = make_part("step")
     stl = write_stl(tmp_path / "step.stl", cad.vertices, cad.triangles)
     scan = simulate_scan(make_part("step", form_um=40.0).transformed(PRESENTATION), ScanSettings(4.0, 2.0, 0.5),
                          seed=2)
     bag = write_scans(tmp_path / "in.mcap", [scan])
-    pose = " ".join(f"{x:.12g}" for x in PRESENTATION[:3].ravel())
+    pose = format_pose7(PRESENTATION)  # x y z (m) qx qy qz qw, as the node's cad_pose
     rc = main(["predict", str(bag), "--out", str(tmp_path / "out.mcap"), "--cad", str(stl), "--cad-pose", pose])
     assert rc == 0
     rep = json.loads((tmp_path / "out.cad.json").read_text())

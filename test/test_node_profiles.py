@@ -141,16 +141,23 @@ def _reference(node: XmetroNode, sp: SimPass):
     return scan, ScanHandler(model, ScannerModel.load(), handler_params(node.core.values)).process(scan)
 
 
-def test_driver_profiles_posed_by_tf_are_judged_like_the_organized_scan(rig):
-    node, client, driver, _cli, scanner = rig
-    scan = simulate_scan(Sphere(17.5, np.zeros(3)), SETTINGS, seed=4)
-    sp = sim_pass(scan, scanner, t0_ns=100 * S)
-    client.pub_settings.publish(settings_msg(scan, 99 * S))
+def _pass(client: NodeClient, driver: Driver, scan, sp: SimPass, settings_stamp: int | None) -> tuple[int, ScanQuality]:
+    """A pass as a cell runs it: (the settings,) the hand-eye, the robot's tf, then the driver's profiles; returns
+    how many profiles were sent and the ScanQuality of the scan they make."""
+    if settings_stamp is not None:
+        client.pub_settings.publish(settings_msg(scan, settings_stamp))
     driver.static()
     driver.tf(sp)
     time.sleep(0.3)
     n = driver.profiles(sp)
-    q = _quality(client, lambda q: stamp_ns_of(q) == int(sp.stamps_ns[0]))
+    return n, _quality(client, lambda q: stamp_ns_of(q) == int(sp.stamps_ns[0]))
+
+
+def test_driver_profiles_posed_by_tf_are_judged_like_the_organized_scan(rig):
+    node, client, driver, _cli, scanner = rig
+    scan = simulate_scan(Sphere(17.5, np.zeros(3)), SETTINGS, seed=4)
+    sp = sim_pass(scan, scanner, t0_ns=100 * S)
+    n, q = _pass(client, driver, scan, sp, 99 * S)
     assert q.error_code == 0, q.message
     assert q.verdict == ScanQuality.VERDICT_OK, q.message
     assert f"assembled from {n} profiles" in q.message and "settings from scanner_settings" in q.message
@@ -248,12 +255,7 @@ def test_recorded_profiles_and_tf_predict_offline_like_the_live_node(rig, tmp_pa
                        discovery_period=0.2)
         assert wait_for(lambda: len(rec.subscriptions) == 4, TIMEOUT), rec.subscriptions
         time.sleep(0.5)
-        client.pub_settings.publish(settings_msg(scan, 699 * S))
-        driver.static()
-        driver.tf(sp)
-        time.sleep(0.3)
-        n = driver.profiles(sp)
-        live = _quality(client, lambda q: stamp_ns_of(q) == int(sp.stamps_ns[0]))
+        n, live = _pass(client, driver, scan, sp, 699 * S)
         assert wait_for(lambda: rec.counts["/profiles"] == n, TIMEOUT), rec.counts
         rec.close()
     finally:
@@ -301,12 +303,7 @@ def test_settings_from_the_driver_parameters_and_measured_densities(rig):
             if k == 1:  # the driver's parameter changes: followed for the next scan
                 drv_sp.node.set_parameters([Parameter("exposure_time", value=500)])
                 assert wait_for(lambda: node._driver_values == {"exposure_ms": 0.5}, TIMEOUT)
-            sp = sim_pass(scan, scanner, t0_ns=t0)
-            driver.static()
-            driver.tf(sp)
-            time.sleep(0.3)
-            driver.profiles(sp)
-            q = _quality(client, lambda q, sp=sp: stamp_ns_of(q) == int(sp.stamps_ns[0]))
+            _n, q = _pass(client, driver, scan, sim_pass(scan, scanner, t0_ns=t0), None)
             assert q.error_code == 0, q.message
             assert "exposure driver" in q.message and "lateral_density, direction_density measured" in q.message
             assert not q.settings_defaulted

@@ -13,6 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
+from stream_rig import transform
 
 from xmetro_ros.scan.assembly import (
     HEAD_IN_SENSOR,
@@ -28,13 +29,6 @@ from xmetro_ros.scan.tf_buffer import TransformBuffer
 
 MS = 1_000_000  # ns
 CENTRE, RADIUS = np.array([0.6, 0.1, 0.0]), 0.05  # the sphere, world frame, m
-
-
-def _t(r: np.ndarray, p) -> np.ndarray:
-    out = np.eye(4)
-    out[:3, :3] = r
-    out[:3, 3] = p
-    return out
 
 
 @dataclass
@@ -69,10 +63,10 @@ class Rig:
     def flange(self, t_ns: int) -> np.ndarray:
         theta = self.wrist_deg * t_ns / (self.duration_ms * MS)
         r = self.r_bf0 @ Rotation.from_euler("x", theta, degrees=True).as_matrix()
-        return _t(r, self.p_bf0 + self.dir_b * self.travelled(t_ns))
+        return transform(r, self.p_bf0 + self.dir_b * self.travelled(t_ns))
 
     def world_sensor(self, t_ns: int) -> np.ndarray:
-        return _t(self.r_wb, self.t_wb) @ self.flange(t_ns) @ _t(self.r_fs, self.t_fs)
+        return transform(self.r_wb, self.t_wb) @ self.flange(t_ns) @ transform(self.r_fs, self.t_fs)
 
     def feed_static(self, buf: TransformBuffer) -> None:
         for parent, child, r, p in (("world", "base", self.r_wb, self.t_wb),

@@ -2,8 +2,9 @@
 docs/parts-generalisation.md).
 
     xmetro parts write DIR [--form-um 40] [--format stl|ply]   CAD (and manufactured, with --form-um) meshes
-    xmetro parts scan PART OUT.mcap [--form-um 40]              a simulated scan of the manufactured part in a bag,
-                                                                 its CAD as OUT_cad.stl, the CAD pose printed
+    xmetro parts scan PART OUT.mcap [--form-um 40] [--pose P]   a simulated scan of the manufactured part in a bag,
+                                                                 its CAD as OUT_cad.stl, the CAD pose printed;
+                                                                 PART: a generated part or a mesh file (mm)
     xmetro parts study OUT [--model DIR] [--parts blade,bowl]   simulate, judge, score: OUT/<part>.json, .png,
                                                                  summary.json
 
@@ -33,9 +34,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     w.add_argument("--step-mm", type=float, default=0.3, help="grid step of the surfaces (mm)")
     w.set_defaults(func=run_write)
     sc = sub.add_parser("scan", help="simulate a scan of a manufactured part into a bag (+ its CAD as STL)")
-    sc.add_argument("part", help="a generated part's name (blade, bowl, step, fillet)")
+    sc.add_argument("part", help="a generated part (blade, bowl, step, fillet) or a mesh file (.stl/.ply/.obj, mm)")
     sc.add_argument("out", metavar="OUT.mcap", help="the bag to write")
     sc.add_argument("--form-um", type=float, default=40.0, help="form error amplitude of the manufactured part (µm)")
+    sc.add_argument("--pose", default=None, metavar="X,Y,Z,QX,QY,QZ,QW",
+                    help="part → scan frame, m + quaternion (default: the study's for a generated part, else identity)")
     sc.add_argument("--settings", default="10,4,0.5", help="lateral density /mm, direction density /mm, exposure ms")
     sc.add_argument("--seed", type=int, default=0, help="seed of the simulated scan (default 0)")
     sc.set_defaults(func=run_scan)
@@ -65,28 +68,50 @@ def run_write(args: argparse.Namespace) -> int:
     return 0
 
 
+def _is_mesh_path(part: str) -> bool:
+    return Path(part).suffix.lower() in (".stl", ".ply", ".obj") or Path(part).exists()
+
+
 def run_scan(args: argparse.Namespace) -> int:
-    """``xmetro parts scan``: the part as the study presents it (``parts_study.PRESENTATION``), one scan in a bag
-    (``ros.scan_io``), the CAD next to it; prints the ``--cad-pose`` for ``xmetro predict``."""
+    """``xmetro parts scan``: a generated part as the study presents it (``parts_study.PRESENTATION``) or a mesh
+    file (identity pose) — or placed by ``--pose`` (m + quaternion, ``scan.part_pose``) —, manufactured with the
+    form error ``--form-um``, one scan in a bag (``ros.scan_io``; the scan's artifact record keeps the form
+    error's truth), the CAD next to it (a generated part's as OUT_cad.stl; a mesh file is its own CAD); prints the
+    ``--cad-pose`` for ``xmetro predict`` (7 numbers, m + quaternion)."""
     from ..parts.study import PRESENTATION
     from ..ros.scan_io import write_scans
+    from ..scan.artifact_specs import load_part_mesh
+    from ..scan.artifacts import ArtifactSpecError
     from ..scan.generated_parts import PARTS, make_part
     from ..scan.mesh import write_stl
+    from ..scan.part_pose import PoseError, format_pose7, parse_pose7
     from ..scan.scanner import ScannerModel, ScanSettings
     from ..sim import simulate_scan
 
-    if args.part not in PARTS:
-        print(f"xmetro parts scan: unknown part {args.part!r} (known: {', '.join(PARTS)})", file=sys.stderr)
+    is_mesh = args.part not in PARTS and _is_mesh_path(args.part)
+    if args.part not in PARTS and not is_mesh:
+        print(f"xmetro parts scan: unknown part {args.part!r} (known: {', '.join(PARTS)}; or a mesh file "
+              ".stl, .ply, .obj)", file=sys.stderr)
         return 2
-    st = ScanSettings(*(float(x) for x in args.settings.split(",")))
-    man = make_part(args.part, form_um=args.form_um).transformed(PRESENTATION)
-    scan = simulate_scan(man, st, scanner=ScannerModel.load(), seed=args.seed)
+    try:
+        pose = PRESENTATION if args.pose is None and not is_mesh else parse_pose7(args.pose, what="--pose", sep=",")
+        st = ScanSettings(*(float(x) for x in args.settings.split(",")))
+        if is_mesh:
+            man = load_part_mesh(args.part, pose=pose, form_um=args.form_um)
+        else:
+            man = make_part(args.part, form_um=args.form_um).transformed(pose)
+        scan = simulate_scan(man, st, scanner=ScannerModel.load(), seed=args.seed)
+    except (PoseError, ArtifactSpecError, ValueError, TypeError) as e:
+        print(f"xmetro parts scan: error: {e}", file=sys.stderr)
+        return 2
     out = Path(args.out)
     write_scans(out, [scan])
-    cad = make_part(args.part)
-    stl = write_stl(out.with_name(out.stem + "_cad.stl"), cad.vertices, cad.triangles)
-    pose = " ".join(f"{x:.12g}" for x in PRESENTATION[:3].ravel())
-    print(f"{out}: 1 scan, {scan.n_valid} points; CAD {stl}; --cad-pose \"{pose}\"")
+    if is_mesh:
+        cad_path = str(args.part)
+    else:
+        cad = make_part(args.part)
+        cad_path = str(write_stl(out.with_name(out.stem + "_cad.stl"), cad.vertices, cad.triangles))
+    print(f"{out}: 1 scan, {scan.n_valid} points; CAD {cad_path}; --cad-pose \"{format_pose7(pose)}\"")
     return 0
 
 

@@ -100,6 +100,13 @@ def node_values(model_dir: str | Path | None = None, overrides: dict[str, Any] |
                 v = str(v)
         except ValueError as e:
             raise PredictError(f"parameter {k}: {e}") from e
+        if k == "cad_pose":  # the part pose's one reader: the old 12-number form refused with the pose to use
+            from ..scan.part_pose import parse_pose7
+
+            try:
+                parse_pose7(v, what="cad_pose", sep=",")
+            except ValueError as e:
+                raise PredictError(f"invalid parameter: {e}") from e
         values[k] = v
     if model_dir is not None:
         values["model_dir"] = str(Path(model_dir).resolve())
@@ -305,8 +312,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--cad", default=None, metavar="PART.stl",
                    help="deviation map of each scan against this CAD mesh (STL/PLY/OBJ, mm), before and after "
                         "compensation (needs open3d; xmetro_ros.apps.predict_cad)")
-    p.add_argument("--cad-pose", default=None, metavar="12 NUMBERS", help="CAD pose part → scan frame (3 rows of 4, "
-                                                                         "mm; default identity)")
+    p.add_argument("--cad-pose", default=None, metavar="X,Y,Z,QX,QY,QZ,QW",
+                   help="CAD pose part → scan frame: m + quaternion, as cad_pose (default identity)")
     p.add_argument("--cad-register", action="store_true", help="register the CAD on each compensated scan (ICP)")
     p.add_argument("--cad-report", default=None, metavar="OUT.json", help="CAD report (default OUT.cad.json)")
     p.set_defaults(func=run)
@@ -317,7 +324,13 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from ..bag.reader import BagFormatError
+    from .predict_cad import parse_pose
 
+    try:  # a bad pose is said before the bag is judged
+        cad_pose = parse_pose(getattr(args, "cad_pose", None))
+    except ValueError as e:
+        print(f"xmetro predict: error: {e}", file=sys.stderr)
+        return 1
     # Progress on a terminal only (a log file or a pipe gets the summary alone).
     with tqdm(desc="xmetro predict", unit="scan", file=sys.stderr, disable=not sys.stderr.isatty(),
               leave=False) as bar:
@@ -330,10 +343,10 @@ def run(args: argparse.Namespace) -> int:
             return 1
     print(res.summary())
     if getattr(args, "cad", None):
-        from .predict_cad import cad_reports, parse_pose, summary_lines
+        from .predict_cad import cad_reports, summary_lines
 
         try:
-            rows = cad_reports(res.outputs, args.cad, pose=parse_pose(args.cad_pose), register=args.cad_register,
+            rows = cad_reports(res.outputs, args.cad, pose=cad_pose, register=args.cad_register,
                                report=args.cad_report or str(Path(args.out).with_suffix(".cad.json")))
         except (ValueError, OSError) as e:
             print(f"xmetro predict: --cad: error: {e}", file=sys.stderr)

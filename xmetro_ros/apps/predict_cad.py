@@ -4,7 +4,8 @@ before and after the model's compensation, with U along the normal (``xmetro_ros
 The node's ``~/deviations`` cloud of each scan (x, y, z as received, predicted deviation dx, dy, dz = measured −
 nominal, U ux, uy, uz, flags; metres) is read back, converted to mm (the deviations turned back into the model's
 target by ``ros.node_outputs.deviation_arrays``, what ``cad_deviation`` takes) and compared with the CAD placed by
-``--cad-pose`` (part → scan frame: 12 numbers, the first three rows of a 4×4 matrix, mm; default identity) or
+``--cad-pose`` (part → scan frame: x, y, z in metres and the quaternion qx, qy, qz, qw, the node's ``cad_pose``
+parameter, ``scan.part_pose``; default identity; the 12-number millimetre matrix of xmetro ≤ 0.5 is refused) or
 registered on the compensated scan (``--cad-register``: point-to-plane ICP from that pose, its fit and uncertainty
 reported). Needs open3d (``[train]`` extra) for the mesh queries. Writes ``--cad-report`` (JSON; default OUT.cad.json).
 """
@@ -21,15 +22,12 @@ __all__ = ["cad_reports", "parse_pose", "summary_lines"]
 
 
 def parse_pose(text: str | None) -> np.ndarray:
-    """A 4×4 pose from 12 comma- or space-separated numbers (rows 1-3, mm); None/empty → identity."""
-    if not text:
-        return np.eye(4)
-    vals = [float(x) for x in text.replace(",", " ").split()]
-    if len(vals) != 12:
-        raise ValueError(f"--cad-pose needs 12 numbers (3 rows of 4), got {len(vals)}")
-    t = np.eye(4)
-    t[:3, :] = np.reshape(vals, (3, 4))
-    return t
+    """The (4, 4) mm pose of ``--cad-pose``: 7 numbers x, y, z (m), qx, qy, qz, qw separated by spaces or commas;
+    None/empty → identity. Raises ``PoseError`` (a ValueError), e.g. for the old 12-number form, with the 7
+    numbers to use instead."""
+    from ..scan.part_pose import parse_pose7
+
+    return parse_pose7(text, what="--cad-pose")
 
 
 def cad_reports(outputs: list[Any], cad_path: str | Path, *, pose: np.ndarray | None = None,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import sys
 import time
@@ -30,12 +31,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--out", required=True, type=Path, help="output directory (created; campaign.mcap must not exist)")
     p.add_argument("--seed", type=int, default=0, help="campaign seed (item seeds derive from it)")
-    p.add_argument("--quick", action="store_true", help="3 spheres x 3 configurations only (a few seconds)")
+    p.add_argument("--quick", action="store_true",
+                   help="3 configurations only (of the spheres, or of the --artifact given; a few seconds)")
     p.add_argument(
         "--artifact",
         action="append",
         metavar="SPEC",
-        help="artifact instead of the study's (repeatable), e.g. sphere:radius=20 or cylinder:radius=15",
+        help="artifact instead of the study's (repeatable), e.g. sphere:radius=20, cylinder:radius=15 or "
+        "'mesh:path=PART.stl,pose=X;Y;Z;QX;QY;QZ;QW,form_error=UM' (pose in m + quaternion; docs/parts.md)",
     )
     p.add_argument("--effects-off", default="", metavar="A,B", help=f"effects to switch off ({', '.join(EFFECTS)})")
     p.add_argument("--plane", action="store_true", help="add the z = 0 plane to the campaign")
@@ -55,6 +58,8 @@ def run(args: argparse.Namespace) -> int:
         off = [n.strip() for n in args.effects_off.split(",") if n.strip()]
         effects = {n: {"enabled": False} for n in off} or None
         artifacts = [parse_artifact(spec)[0] for spec in args.artifact] if args.artifact else None
+        if any(a.kind == "mesh" for a in artifacts or []) and importlib.util.find_spec("open3d") is None:
+            raise ArtifactSpecError("scanning a mesh needs open3d (pip install 'xmetro_ros[train]')")
         items = study_campaign(scanner, seed=args.seed, plane=args.plane, effects=effects, artifacts=artifacts)
         if args.quick:
             items = [it for it in items if it.config_index in QUICK_CONFIGS and it.artifact.kind == "sphere"] or [

@@ -20,6 +20,7 @@ from std_msgs.msg import Header
 
 from ..msg import ScannerSettings
 from ..scan.geometry import HeadPose
+from ..scan.part_pose import pose7_to_matrix_mm  # the one reader of a part pose (re-exported)
 from ..scan.scan import Scan
 from ..scan.scanner import ScanSettings, SettingsError
 from .cloud import CloudFormatError, create_cloud_from_arrays, field_names, validate_cloud, xyz_fields
@@ -97,20 +98,6 @@ def pose_to_msg(pose: HeadPose) -> Pose:
         position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
         orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
     )
-
-
-def pose7_to_matrix_mm(values: Iterable[float]) -> np.ndarray:
-    """A pose parameter ``[x, y, z, qx, qy, qz, qw]`` (metres, quaternion in ROS order; normalised) → the (4, 4)
-    rigid transform in millimetres. Raises ValueError on a wrong length, a non-finite value or a zero quaternion."""
-    from ..scan.geometry import quat_to_matrix
-
-    v = np.asarray(list(values), dtype=np.float64)
-    if v.shape != (7,) or not np.isfinite(v).all():
-        raise ValueError(f"a pose needs 7 finite numbers x, y, z, qx, qy, qz, qw, got {v.tolist()}")
-    t = np.eye(4)
-    t[:3, :3] = quat_to_matrix(v[3:])
-    t[:3, 3] = v[:3] * MM_PER_M
-    return t
 
 
 def pose_from_msg(msg: Pose) -> HeadPose:

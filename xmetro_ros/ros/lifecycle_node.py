@@ -83,6 +83,7 @@ class XmetroLifecycleNode(XmetroWiring, LifecycleNode):
     def destroy_node(self) -> None:
         if hasattr(self, "_cv"):
             self._stop_worker()
+        self._destroy_profile_inputs()  # the helper node and its executor thread, when profile_input is on
         super().destroy_node()
 
 

@@ -374,6 +374,7 @@ class XmetroNode(XmetroWiring, Node):
         # Also called when __init__ failed part-way (then the worker may not exist): never mask the first error.
         if hasattr(self, "_cv"):
             self._stop_worker()
+        self._destroy_profile_inputs()  # the helper node and its executor thread, when profile_input is on
         super().destroy_node()
 
 

@@ -23,7 +23,7 @@ import numpy as np
 
 from .mesh import MeshArtifact
 
-__all__ = ["PARTS", "form_field", "heightfield_solid", "make_part", "part_geometry"]
+__all__ = ["PARTS", "apply_form_error", "form_field", "heightfield_solid", "make_part", "part_geometry", "refine_edges"]
 
 _BASE_Z = -12.0  # bottom of every part (mm)
 
@@ -122,15 +122,90 @@ PARTS: dict[str, Callable[[float], tuple[np.ndarray, np.ndarray, np.ndarray]]] =
 }
 
 
-def form_field(points: np.ndarray, amplitude_um: float) -> np.ndarray:
+def form_field(points: np.ndarray, amplitude_um: float, *, center_mm: tuple[float, float] = (0.0, 0.0),
+               sigma_mm: float = 6.0) -> np.ndarray:
     """The known form error (mm, along +Z) of a manufactured part at ``points`` (N, 3) mm: a bump of
     +``amplitude_um`` (Gaussian, σ 6 mm, at (8, 4)) and a dip of −0.6·amplitude (σ 5 mm, at (−9, −5)); smooth
-    (slope ≤ 0.005 at 50 µm), so the scanner sees it as a change of shape, not of its own error."""
+    (slope ≤ 0.005 at 50 µm), so the scanner sees it as a change of shape, not of its own error.
+
+    ``center_mm`` (x, y) moves the pattern (the generated parts: the origin, the centre of each); ``sigma_mm``
+    scales it (positions and widths by ``sigma_mm`` / 6; the generated parts: 6)."""
     p = np.asarray(points, dtype=np.float64)
     a = amplitude_um * 1e-3
-    g1 = np.exp(-((p[:, 0] - 8.0) ** 2 + (p[:, 1] - 4.0) ** 2) / (2 * 6.0**2))
-    g2 = np.exp(-((p[:, 0] + 9.0) ** 2 + (p[:, 1] + 5.0) ** 2) / (2 * 5.0**2))
+    s = float(sigma_mm) / 6.0
+    cx, cy = (float(c) for c in center_mm)
+    g1 = np.exp(-((p[:, 0] - (cx + 8.0 * s)) ** 2 + (p[:, 1] - (cy + 4.0 * s)) ** 2) / (2 * (6.0 * s) ** 2))
+    g2 = np.exp(-((p[:, 0] - (cx - 9.0 * s)) ** 2 + (p[:, 1] - (cy - 5.0 * s)) ** 2) / (2 * (5.0 * s) ** 2))
     return a * (g1 - 0.6 * g2)
+
+
+def refine_edges(vertices: np.ndarray, triangles: np.ndarray, max_edge_mm: float
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The same surface with no edge longer than ``max_edge_mm``: every longer edge split at its midpoint (shared
+    by both its triangles: no cracks), each triangle re-cut into 2, 3 or 4 with its winding, until none is left.
+    The surface is unchanged (new vertices lie on the old triangles); only where the edges are long are there
+    more triangles."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(triangles, dtype=np.int64)
+    if not (np.isfinite(max_edge_mm) and max_edge_mm > 0):
+        raise ValueError(f"max_edge_mm must be positive, got {max_edge_mm}")
+    for _ in range(200):
+        nf = len(f)
+        e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)  # edge k of face i: k*F + i
+        long = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1) > max_edge_mm
+        if not long.any():
+            return v, f
+        le, inv = np.unique(e[long], axis=0, return_inverse=True)
+        mid_id = np.full(len(e), -1, dtype=np.int64)
+        mid_id[long] = len(v) + inv.reshape(-1)
+        v = np.vstack([v, 0.5 * (v[le[:, 0]] + v[le[:, 1]])])
+        m = mid_id.reshape(3, nf).T  # (F, 3): the midpoint on edge (0, 1), (1, 2), (2, 0) or −1
+        split = m >= 0
+        n = split.sum(axis=1)
+        # Rotate each face (cyclically: the winding stays) so that one split edge is edge 0 (one split) or the
+        # unsplit edge is edge 2 (two splits).
+        r = np.zeros(nf, dtype=np.int64)
+        r[n == 1] = np.argmax(split[n == 1], axis=1)
+        r[n == 2] = (np.argmin(split[n == 2], axis=1) + 1) % 3
+        idx = (r[:, None] + np.arange(3)) % 3
+        fv, fm = np.take_along_axis(f, idx, axis=1), np.take_along_axis(m, idx, axis=1)
+        a, b, c = fv[:, 0], fv[:, 1], fv[:, 2]
+        m0, m1, m2 = fm[:, 0], fm[:, 1], fm[:, 2]
+        out = [f[n == 0]]
+        k = n == 1
+        out += [np.stack([a[k], m0[k], c[k]], 1), np.stack([m0[k], b[k], c[k]], 1)]
+        k = n == 2
+        out += [np.stack([m0[k], b[k], m1[k]], 1), np.stack([a[k], m0[k], m1[k]], 1), np.stack([a[k], m1[k], c[k]], 1)]
+        k = n == 3
+        out += [np.stack([a[k], m0[k], m2[k]], 1), np.stack([m0[k], b[k], m1[k]], 1),
+                np.stack([m2[k], m1[k], c[k]], 1), np.stack([m0[k], m1[k], m2[k]], 1)]
+        f = np.vstack(out)
+    raise ValueError(f"refine_edges: edges still longer than {max_edge_mm} mm after 200 rounds")
+
+
+def apply_form_error(mesh: MeshArtifact, amplitude_um: float, sigma_mm: float = 6.0,
+                     center_mm: tuple[float, float] | None = None) -> MeshArtifact:
+    """Any mesh (part frame, not yet posed) made into a manufactured part with the generated parts' form error
+    (``form_field``): every vertex moved along the part's +Z by ``form_field`` scaled to ``amplitude_um``, with
+    the pattern centred on ``center_mm`` (x, y; default the centre of the mesh's bounding box) and scaled by
+    ``sigma_mm``. Edges longer than ``sigma_mm`` / 4 are split first (``refine_edges``), so the manufactured
+    surface follows the field (within 1 % of its amplitude) on a CAD of large flat triangles. The truth is
+    recorded in the mesh's ``source`` (``form_um``, ``form_sigma_mm``, ``form_center_mm``), which ``to_dict`` (and
+    so a scan's artifact in a bag) keeps and ``scan.artifact_specs.mesh_from_dict`` rebuilds from."""
+    if not np.allclose(mesh.transform, np.eye(4)):
+        raise ValueError("apply_form_error: the mesh is already posed; give it in its part frame")
+    if not (np.isfinite(amplitude_um) and np.isfinite(sigma_mm) and sigma_mm > 0):
+        raise ValueError(f"form error: amplitude {amplitude_um} µm and σ {sigma_mm} mm must be finite, σ > 0")
+    if center_mm is None:
+        lo, hi = mesh.bounds()
+        center_mm = (float(0.5 * (lo[0] + hi[0])), float(0.5 * (lo[1] + hi[1])))
+    v, f = refine_edges(mesh.vertices, mesh.triangles, float(sigma_mm) / 4.0)
+    v = v.copy()
+    v[:, 2] += form_field(v, amplitude_um, center_mm=center_mm, sigma_mm=sigma_mm)
+    src = None if mesh.source is None else {
+        **mesh.source, "form_um": float(amplitude_um), "form_sigma_mm": float(sigma_mm),
+        "form_center_mm": [float(center_mm[0]), float(center_mm[1])]}
+    return MeshArtifact(v, f, name=f"{mesh.name}+form{amplitude_um:g}um", source=src, crease_deg=mesh.crease_deg)
 
 
 def part_geometry(name: str, step_mm: float = 0.3) -> tuple[np.ndarray, np.ndarray]:

@@ -186,7 +186,7 @@ def campaign_manifest(
     items: list[CampaignItem], *, seed: int, effects: dict[str, Any] | None = None, extra: dict[str, Any] | None = None
 ) -> dict[str, Any]:
     """JSON-serialisable description of a campaign: seed, scanner, effects (enabled, with parameters), items.
-    Holds no paths."""
+    Holds no paths, except a mesh artifact's file (needed to rebuild it)."""
     scanner = items[0].scanner if items else ScannerModel.load()
     fx = resolve_effects(scanner.effects, effects)
     return {
