@@ -126,3 +126,22 @@ def test_stream_context_needs_a_chunked_trigger():
     base = {p.name: p.default for p in PARAMS} | {"profile_input": True, "fixed_frame": "world"}
     assert "stream_context_rows needs" in validate({"stream_context_rows": 5, "scan_trigger": "gap"}, base)
     assert validate({"stream_context_rows": 5, "scan_trigger": "window"}, base) is None
+
+
+def test_a_dropped_chunk_is_answered_with_its_own_rows(world):
+    """A streamed chunk the node's queue drops (or the watchdog abandons) is answered ERROR with its own first row's
+    stamp, its own size and the settings it would have been judged with — not its context's."""
+    _scanner, _scan, sp, msgs, base = world
+    core = XmetroCore(base | {"scan_trigger": "count", "trigger_count": 60, "stream_context_rows": 6})
+    st = stream_from_values(core.values)
+    sp.feed(st.tf_buffer)
+    scans, _ = st.profiles(msgs[:130], 0.0)
+    (chunk,) = scans  # rows 0-59, published once rows 60-119 complete
+    scans, _ = st.profiles(msgs[130:190], 0.0)
+    (second,) = scans  # rows 60-119 with 6 rows before and after
+    assert second.core_rows == (6, 66)
+    msg, posed = core.posed_input(second)
+    q = core.unjudged(msg, "QUEUE_OVERFLOW", "dropped", posed=posed).quality
+    assert stamp_to_ns(q.header.stamp) == int(sp.stamps_ns[60]) and q.points_received == 60 * msg.width
+    assert q.error_code == q.ERROR_QUEUE_OVERFLOW and q.settings.exposure_time == posed.settings_msg.exposure_time
+    assert chunk.core_rows == (0, 60)

@@ -236,14 +236,25 @@ class XmetroCore:
         q.processing_latency = time.monotonic() - t0
         return CoreOutput(q, None, None, f"scan rejected ({code}): {message}")
 
-    def unjudged(self, msg: PointCloud2, code: str, message: str, t0: float | None = None) -> CoreOutput:
+    def unjudged(self, msg: PointCloud2, code: str, message: str, t0: float | None = None,
+                 posed: PosedScan | None = None) -> CoreOutput:
         """An ERROR answer for a scan that is not (or no longer) processed: dropped by the node's queue
-        (``QUEUE_OVERFLOW``) or abandoned by the watchdog (``TIMEOUT``). Cheap: no decoding."""
+        (``QUEUE_OVERFLOW``) or abandoned by the watchdog (``TIMEOUT``). Cheap: no decoding. A scan assembled from
+        profiles (``posed``) is answered with its own settings, and a streamed chunk with its own rows' stamp and
+        size (not its context's)."""
         t0 = time.monotonic() if t0 is None else t0
+        n = int(msg.width) * int(msg.height)
+        if posed is not None:
+            header = msg.header
+            if posed.rows is not None:
+                header = type(msg.header)(stamp=ns_to_stamp(posed.stamp_ns), frame_id=msg.header.frame_id)
+                n = (posed.rows[1] - posed.rows[0]) * int(msg.width)
+            q = new_quality(header, self.model_id, posed.settings_msg, posed.defaulted)
+            return self._error(q, code, message, n, t0)
         stamp_ns = stamp_to_ns(msg.header.stamp)
         entry = self.settings_for(stamp_ns)
         q = new_quality(msg.header, self.model_id, entry.msg if entry is not None else None, entry is None)
-        return self._error(q, code, message, int(msg.width) * int(msg.height), t0)
+        return self._error(q, code, message, n, t0)
 
     def judge(self, msg: PointCloud2, t0: float | None = None, deadline: float | None = None,
               reference: bool = False, posed: PosedScan | None = None) -> CoreOutput:

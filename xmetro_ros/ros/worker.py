@@ -70,7 +70,7 @@ class ScanWorker(NodeMixin):
         if dropped is not None:
             text = f"the node's processing queue was full ({self._qmax}): scan dropped unjudged"
             self.get_logger().warning(f"{text} (stamp {stamp_to_ns(dropped[0].header.stamp)} ns)")
-            self._publish_quality(core.unjudged(dropped[0], "QUEUE_OVERFLOW", text, dropped[1]).quality)
+            self._publish_quality(core.unjudged(dropped[0], "QUEUE_OVERFLOW", text, dropped[1], dropped[3]).quality)
             if dropped[3] is not None:
                 self._posed_done(dropped[3], judged=False)
 
@@ -227,7 +227,7 @@ class ScanWorker(NodeMixin):
                     f"{now - start:.1f} s, scan answered unjudged")
             self.get_logger().error(f"watchdog: {text} (stamp {stamp_to_ns(msg.header.stamp)} ns)")
             diag.on_timeout(abandoned_worker=True)
-            self._answer(core.unjudged(msg, "TIMEOUT", text, t0).quality)
+            self._answer(core.unjudged(msg, "TIMEOUT", text, t0, posed).quality)
             if posed is not None:
                 self._posed_done(posed, judged=True)  # answered (TIMEOUT), as a scan abandoned on the scan topic
 
