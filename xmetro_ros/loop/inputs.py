@@ -257,10 +257,17 @@ def from_profiles(path: Path, artifact: Artifact, fit_center: bool = True) -> Lo
 
 
 def _position_id(root: Path, position: str) -> float:
-    """A stable id (< 2⁴⁰, exact in float64) of a sensor position of the profiles under ``root``."""
+    """A stable id (< 2⁴⁰, exact in float64) of a sensor position of the profiles under ``root``: keyed on the last
+    two components of the real folder of its files (links resolved) and the position, so that a list naming the
+    same files from elsewhere (a copy of the list, a folder of links, another machine's mount) gives the same ids —
+    and so the same roles and results. Keyed on the list's own folder, the ids (and the loop's role draw) changed
+    with where the list was written."""
     import hashlib
 
-    return float(int.from_bytes(hashlib.blake2b(f"{root}/{position}".encode(), digest_size=5).digest(), "big"))
+    folder, _, pid = position.rpartition("/")
+    real = (root / folder).resolve() if folder else root.resolve()
+    key = "/".join((*real.parts[-2:], pid))
+    return float(int.from_bytes(hashlib.blake2b(key.encode(), digest_size=5).digest(), "big"))
 
 
 def detect_kind(path: Path) -> str:
