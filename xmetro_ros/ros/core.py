@@ -247,7 +247,7 @@ class XmetroCore:
         if posed is not None:
             header = msg.header
             if posed.rows is not None:
-                header = type(msg.header)(stamp=ns_to_stamp(posed.stamp_ns), frame_id=msg.header.frame_id)
+                header = restamped(msg.header, posed.stamp_ns)
                 n = (posed.rows[1] - posed.rows[0]) * int(msg.width)
             q = new_quality(header, self.model_id, posed.settings_msg, posed.defaulted)
             return self._error(q, code, message, n, t0)
@@ -293,7 +293,7 @@ class XmetroCore:
             entry = found if found is not None else self.default_entry(msg.header.frame_id, stamp_ns)
         q = new_quality(msg.header, self.model_id, entry.msg, defaulted)
         if posed is not None and posed.rows is not None:  # its outputs, an error's too, carry its own rows' stamp
-            q.header = type(msg.header)(stamp=ns_to_stamp(posed.stamp_ns), frame_id=msg.header.frame_id)
+            q.header = restamped(msg.header, posed.stamp_ns)
         try:
             if self.model is None:
                 return self._error(q, "MODEL_UNAVAILABLE", self.degraded, n, t0), None
@@ -498,12 +498,17 @@ class XmetroCore:
         return self.cad.transformed(judged.cad_pose)
 
 
+def restamped(header: Any, stamp_ns: int) -> Any:
+    """A copy of ``header`` (same frame) stamped ``stamp_ns``: a streamed chunk's outputs carry its own first row's."""
+    return type(header)(stamp=ns_to_stamp(stamp_ns), frame_id=header.frame_id)
+
+
 def cloud_rows(msg: PointCloud2, start: int, stop: int, stamp_ns: int) -> PointCloud2:
     """Rows ``start:stop`` of an organized cloud, stamped ``stamp_ns`` (one copy of those rows' bytes)."""
     from copy import copy
 
     out = copy(msg)
-    out.header = type(msg.header)(stamp=ns_to_stamp(stamp_ns), frame_id=msg.header.frame_id)
+    out.header = restamped(msg.header, stamp_ns)
     out.height = stop - start
     step = int(msg.row_step)
     out.data = bytes(msg.data)[start * step: stop * step]
