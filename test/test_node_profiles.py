@@ -14,6 +14,7 @@ import pytest
 from builtin_interfaces.msg import Time
 from driver_emulators import DRIVERS
 from geometry_msgs.msg import TransformStamped
+from rcl_interfaces.msg import Log
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -229,6 +230,33 @@ def test_tf_problems_each_get_their_code_and_the_next_pass_is_judged(rig):
     assert "tf_missing" in v["profiles_dropped_by_reason"] and "out_of_order" in v["profiles_dropped_by_reason"]
 
 
+def test_a_failing_stream_callback_is_logged_and_the_stream_goes_on(rig):
+    """A callback of the profile input that raises (here the stream's tf intake, once) is logged with its cause,
+    and the helper's executor keeps spinning: the next pass is judged (rclpy's spin() would have ended there, and
+    every profile after it would have been lost without a word)."""
+    node, client, driver, _cli, scanner = rig
+    real_tf, calls = node.stream.tf, []
+
+    def failing_once(*args, **kwargs):
+        if not calls:
+            calls.append(1)
+            raise RuntimeError("injected tf intake failure")
+        return real_tf(*args, **kwargs)
+
+    node.stream.tf = failing_once
+    try:
+        # the failure hits a transform of no use to the pass, so that the pass itself is whole
+        driver.pub_tf.publish(TFMessage(transforms=[_tf("artifact", "elsewhere", 600 * S, np.eye(4))]))
+        assert wait_for(lambda: bool(calls), TIMEOUT)
+        client.wait_log(Log.ERROR, "a callback failed and was skipped: RuntimeError: injected tf intake failure")
+        scan = simulate_scan(Sphere(17.5, np.zeros(3)), SETTINGS, seed=8)
+        sp = sim_pass(scan, scanner, t0_ns=600 * S)
+        _n, q = _pass(client, driver, scan, sp, 599 * S)
+        assert q.error_code == 0, q.message
+    finally:
+        del node.stream.tf
+
+
 def test_signal_trigger_service_refused_with_reason_on_a_gap_trigger(rig):
     _node, _client, _driver, cli, _scanner = rig
     c = cli.create_client(Trigger, "/xmetro_node/start_scan")
@@ -280,6 +308,9 @@ def test_settings_from_the_driver_parameters_and_measured_densities(rig):
     """No ScannerSettings: the exposure comes from the driver's own parameter (IGMR-RWTH/scancontrol_lls's
     ``exposure_time``, µs, followed on /parameter_events), the densities are measured from the posed profiles."""
     _node, _client, driver, _cli, scanner = rig
+    # the driver's writers must see this node's readers before it publishes: a reader that has matched a writer
+    # (sub_profiles.get_publisher_count()) may not yet be matched by it, and then gets nothing (one CI run)
+    seen = {p: p.get_subscription_count() for p in (driver.pub, driver.pub_tf, driver.pub_static)}
     drv_sp = NodeSpinner(lambda ctx: Node("lls_driver_t", context=ctx))
     drv_sp.node.declare_parameter("exposure_time", 2000)
     drv_sp.node.declare_parameter("profile_period", 10000)
@@ -296,7 +327,8 @@ def test_settings_from_the_driver_parameters_and_measured_densities(rig):
         node = node_sp.node
         assert wait_for(lambda: node._driver_values == {"exposure_ms": 2.0}, TIMEOUT), node._driver_values
         assert wait_for(lambda: node.pub_quality.get_subscription_count() > 0
-                        and node.sub_profiles.get_publisher_count() > 0, TIMEOUT)
+                        and node.sub_profiles.get_publisher_count() > 0
+                        and all(p.get_subscription_count() > n for p, n in seen.items()), TIMEOUT)
         scan = simulate_scan(Sphere(17.5, np.zeros(3)), SETTINGS, seed=7)
         # stamped before every ScannerSettings the rig published (transient local: this node gets them too)
         for k, t0 in enumerate((50 * S, 60 * S)):

@@ -20,11 +20,12 @@ from __future__ import annotations
 
 import threading
 import time
+import traceback
 from collections.abc import Callable
 from typing import Any
 
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.executors import SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException, ShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
@@ -83,10 +84,6 @@ class ProfileInput(NodeMixin):
         self.sub_tf_static = sn.create_subscription(TFMessage, "/tf_static", lambda m: self._on_tf(m, True),
                                                     tf_qos(True))
         self.timer_profiles: Any = sn.create_timer(POLL_PERIOD_S, self._poll_stream)
-        self._stream_executor: SingleThreadedExecutor | None = SingleThreadedExecutor(context=self.context)
-        self._stream_executor.add_node(sn)
-        self._stream_thread = threading.Thread(target=self._spin_stream, name="xmetro-profiles", daemon=True)
-        self._stream_thread.start()
         group = MutuallyExclusiveCallbackGroup()
         self.sub_scan_active = self.create_subscription(Bool, "scan_active", self._on_scan_active, 10,
                                                         callback_group=group)
@@ -106,6 +103,13 @@ class ProfileInput(NodeMixin):
         if self.diag is not None:
             self.diag.settings_from_stream = True
             self.diag.on_profiles(self._stream_values())
+        # Spun last, once every attribute its callbacks read exists: a latched /tf_static arrives at once (a CI run
+        # lost its whole profile input to a callback that ran before ``driver_follower`` was set).
+        self._stream_stop = threading.Event()
+        self._stream_executor: SingleThreadedExecutor | None = SingleThreadedExecutor(context=self.context)
+        self._stream_executor.add_node(sn)
+        self._stream_thread = threading.Thread(target=self._spin_stream, name="xmetro-profiles", daemon=True)
+        self._stream_thread.start()
 
     def _destroy_profile_inputs(self) -> None:
         follower = getattr(self, "driver_follower", None)
@@ -114,6 +118,7 @@ class ProfileInput(NodeMixin):
             self.driver_follower = None
         executor = getattr(self, "_stream_executor", None)
         if executor is not None:
+            self._stream_stop.set()
             executor.shutdown(timeout_sec=5.0)
             self._stream_thread.join(timeout=5.0)
             self.stream_node.destroy_node()
@@ -121,12 +126,19 @@ class ProfileInput(NodeMixin):
         self.stream = None
 
     def _spin_stream(self) -> None:
+        """The helper's executor loop. A callback that raises is logged and the loop goes on: rclpy's ``spin()``
+        would end on it, and with it every profile and tf after (a stream that stalls without a word)."""
         executor = self._stream_executor
-        try:
-            if executor is not None:
-                executor.spin()
-        except Exception:  # the context or the executor shut down while spinning
-            pass
+        while executor is not None and not self._stream_stop.is_set() and self.context.ok():
+            try:
+                executor.spin_once(timeout_sec=0.1)
+            except (ExternalShutdownException, ShutdownException):
+                return
+            except Exception as e:
+                if self._stream_stop.is_set() or not self.context.ok():
+                    return  # shut down while spinning
+                self.get_logger().error(f"profile input: a callback failed and was skipped: {type(e).__name__}: "
+                                        f"{e}\n{traceback.format_exc(limit=-3)}", throttle_duration_sec=1.0)
 
     def _on_driver_settings(self, ds: Any) -> None:
         """The driver's parameters changed: the values it gives (exposure, lateral density) for the next scans."""
