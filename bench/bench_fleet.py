@@ -1,7 +1,7 @@
 """`xmetro fleet predict` throughput with 1 and 2 Dask workers, and peak memory per worker → bench/results/fleet.json.
 
 Inputs: ``--bags`` copies of bags/demo.mcap (4 scans of 31k-84k points each, settings before each scan), judged by
-the shipped default model with ``inference_threads=1`` (one core per worker process). In one run, one after the
+the shipped default model with ``threads=1`` (one core per worker process). In one run, one after the
 other: a local cluster of 1 worker process, then of 2, each over the same bags into a fresh output directory
 (``--deterministic``; cluster start-up timed apart); throughput = scans / wall time from submission to the last
 bag's completion; scaling ratio = throughput(2) / throughput(1) (ideal: 2 on an idle 2-core machine; this machine
@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 DEMO = ROOT / "bags" / "demo.mcap"
-PARAMS = {"inference_threads": "1"}
+PARAMS = {"threads": "1"}
 
 
 def make_large_bag(path: Path, repeat: int) -> int:
@@ -118,7 +118,7 @@ def main() -> int:
     result = {
         "bench": "fleet",
         "what": "xmetro fleet predict on local Dask clusters of 1 and 2 worker processes (same run), "
-                f"{args.bags} copies of bags/demo.mcap, default model, inference_threads=1, --deterministic",
+                f"{args.bags} copies of bags/demo.mcap, default model, threads=1, --deterministic",
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
                     "note": "2 cores shared with other engineers' jobs: noisy; see loadavg_1min_before"},
         "runs": runs,

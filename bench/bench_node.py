@@ -8,9 +8,9 @@
    replace), the same points unorganized, and a ~16,000-point scan; median of ``--reps`` runs, each followed by
    open3d's KD-tree normal estimation alone (hybrid radius 1 mm / 30 nn) on the same valid points, so the ratio is
    measured in the same process, interleaved (goals: organized ≤ 0.2× open3d's normals, unorganized ≤ 1.0×).
-   Threads: ONNX Runtime as ``inference_threads`` (node default), OMP / OpenBLAS 2 (set before numpy loads).
-2. ONNX Runtime intra-op threads: the default model's ``predict`` on the in-domain scan's features, and the whole
-   judge, with 1 and with 2 threads, alternating run by run (the ``inference_threads`` default follows from it).
+   Threads: the node's default budget (``threads`` 0: every CPU here; numba and ONNX Runtime), OMP / OpenBLAS 2
+   (set before numpy loads). The judge at 1 and 2 threads side by side: bench/bench_threads.py.
+2. (The ONNX-threads comparison that stood here is bench/bench_threads.py's whole-budget one.)
 3. A per-stage profile of the organized judge (each stage timed on its own, median of ``--reps``), pre-processing
    split into its compiled kernels.
 4. Between processes over DDS: ``xmetro_node`` started as a child process (``NodeProcess``, config/xmetro.yaml,
@@ -113,7 +113,9 @@ def in_process(reps: int, model_dir: str) -> dict:
     from xmetro_ros.scan.scan import Scan
 
     core, values = _core(model_dir)
-    out: dict = {"model_id": core.model_id, "inference_threads": int(values["inference_threads"]),
+    from xmetro_ros.compute_threads import resolve_threads
+
+    out: dict = {"model_id": core.model_id, "threads": resolve_threads(int(values["threads"])),
                  "kernels_warm_up_s": round(core.handler.warm_up_s, 3)}
     big = _sim(BIG, stamp_ns=10**9)
     pts, fields, _ = big.flat()
@@ -147,45 +149,8 @@ def in_process(reps: int, model_dir: str) -> dict:
               f"{cases[name]['open3d_normals']['median_ms']} ms, ratio {ratio:.3f}, "
               f"{cases[name]['verdict_name']}, {cases[name]['out_of_domain_points']} out of domain", flush=True)
     out["cases"] = cases
-    out["inference_threads_organized_180k"] = threads(core, big, reps, model_dir)
-    print(f"threads: {out['inference_threads_organized_180k']}", flush=True)
     out["stages_organized_180k"] = stages(core, big, reps)
     print(f"stages: {out['stages_organized_180k']}", flush=True)
-    return out
-
-
-def threads(core, scan, reps: int, model_dir: str) -> dict:
-    """ONNX Runtime with 1 vs 2 intra-op threads on the scan: predict alone and the whole judge, alternating."""
-    from xmetro_ros.judge.features import FeatureContext, compute_features
-    from xmetro_ros.judge.inference import ModelSet
-    from xmetro_ros.preprocess import prepare_scan
-    from xmetro_ros.ros.convert import scan_to_cloud
-
-    models = {t: ModelSet.load(model_dir or None, threads=t) for t in (1, 2)}
-    h = core.handler
-    X = compute_features(list(core.model.feature_names),
-                         FeatureContext.from_prepared(prepare_scan(scan, h.preprocess_config(), scanner=h.scanner)),
-                         dtype=np.float32)
-    msg = scan_to_cloud(scan)
-    pred: dict[int, list[float]] = {1: [], 2: []}
-    judge: dict[int, list[float]] = {1: [], 2: []}
-    keep = h.model
-    try:
-        for i in range(reps + 1):
-            for t, m in models.items():
-                a = time.perf_counter()
-                m.predict(X)
-                b = time.perf_counter()
-                h.model = m
-                core.judge(msg)
-                c = time.perf_counter()
-                if i:
-                    pred[t].append(b - a)
-                    judge[t].append(c - b)
-    finally:
-        h.model = keep
-    out = {f"threads_{t}": {"predict": _ms(pred[t]), "judge": _ms(judge[t])} for t in models}
-    out["faster"] = min(models, key=lambda t: np.median(judge[t]))
     return out
 
 

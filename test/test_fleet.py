@@ -140,7 +140,7 @@ def test_fleet_cli(fleet_dir, tmp_path, capsys):
 
     out = tmp_path / "out"
     rc = main(["fleet", "predict", str(fleet_dir / "in" / "cellB"), "--out-dir", str(out), "--workers", "1",
-               "--param", "inference_threads=1"])
+               "--param", "threads=1"])
     assert rc == 0
     assert "2 done" in capsys.readouterr().out
     assert len(pd.read_parquet(out / "summary.parquet")) == 8

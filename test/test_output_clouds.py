@@ -66,3 +66,36 @@ def test_large_cloud_reads_back() -> None:
     np.testing.assert_array_equal(a["x"], pts[:, 0])
     np.testing.assert_array_equal(a["flags"], flags)
     np.testing.assert_array_equal(a["dz"], (dev[:, 2] * 1e-3).astype(np.float32))
+
+
+def test_target_sign_flip_and_corrected_records_are_the_numpy_bytes() -> None:
+    """``from_target`` writes the bytes of ``published_deviation(t)`` (−t, NaN kept); the compiled ``~/corrected``
+    pass gives numpy's float32 ``astype`` / multiply / mask / ``+=`` bytes, with and without a kept subset."""
+    from xmetro_ros.ros.convert import M_PER_MM, scan_to_cloud
+    from xmetro_ros.ros.output_clouds import corrected_cloud
+    from xmetro_ros.scan.artifacts import Sphere
+    from xmetro_ros.scan.scanner import ScanSettings
+    from xmetro_ros.scan.targets import published_deviation
+    from xmetro_ros.sim import simulate_scan
+
+    msg = scan_to_cloud(simulate_scan(Sphere(17.5, np.zeros(3)), ScanSettings(6.0, 3.0, 0.5), seed=1))
+    n = msg.height * msg.width
+    rng = np.random.default_rng(0)
+    t = rng.normal(0, 0.05, (n, 3))
+    t[rng.random((n, 3)) < 0.1] = np.nan
+    t[5] = [-0.0, 0.0, np.inf]
+    pts = rng.normal(0, 1, (n, 3)).astype(np.float32)
+    flags = rng.integers(0, 2000, n).astype(np.uint16)
+    a = deviations_cloud(Header(), pts, published_deviation(t), flags, msg.height, msg.width, unc_mm=np.abs(t))
+    b = deviations_cloud(Header(), pts, t, flags, msg.height, msg.width, unc_mm=np.abs(t), from_target=True)
+    assert bytes(a.data) == bytes(b.data)
+    src = np.frombuffer(bytes(msg.data), dtype=np.float32).reshape(n, -1)
+    c = next(f.offset for f in msg.fields if f.name == "x") // 4
+    for keep in (None, np.sort(rng.choice(n, n // 3, replace=False))):
+        tk = t if keep is None else t[keep]
+        ref = (src if keep is None else src[keep]).copy()
+        shift = tk.astype(np.float32) * np.float32(M_PER_MM)
+        shift[~np.isfinite(shift)] = 0.0
+        ref[:, c:c + 3] += shift
+        h, w = (msg.height, msg.width) if keep is None else (1, len(keep))
+        assert bytes(corrected_cloud(msg, tk, keep, h, w).data) == ref.tobytes()

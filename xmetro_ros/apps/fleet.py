@@ -323,7 +323,8 @@ def run(args: argparse.Namespace) -> int:
     from .predict import PredictError, _parse_params, node_values
 
     try:
-        params = _parse_params(args.param)
+        # one thread per worker process unless asked otherwise: a worker per core, no oversubscription
+        params = {"threads": 1, **_parse_params(args.param)}
         node_values(args.model, params)  # refuse bad parameters before starting a cluster
         jobs = plan_jobs(find_bags(args.inputs), args.out_dir, _parse_cells(args.cell))
     except (PredictError, ValueError, FileNotFoundError) as e:

@@ -99,6 +99,11 @@ def session_options(threads: int = 1) -> Any:
     opts.inter_op_num_threads = 1
     opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    # The intra-op threads spin during a run but stop at its end: the judge's compiled kernels run right after the
+    # ONNX call on the same cores, and threads left spinning took a core from them (the judge at 2 threads here:
+    # 0.62-0.65x open3d's normals left spinning, 0.47-0.57x stopped; never spinning made the ONNX call itself
+    # slower, bench/bench_threads.py)
+    opts.add_session_config_entry("session.force_spinning_stop", "1")
     return opts
 
 

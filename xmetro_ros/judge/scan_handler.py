@@ -24,10 +24,12 @@ from typing import Any
 
 import numpy as np
 
+from ..compute_threads import use_threads
 from ..scan.geometry import HeadPose, RowPoses
 from ..scan.scan import Scan
 from ..scan.scanner import ScannerModel, SettingsError
 from . import flags as fl
+from .point_flags import NO_DECISION, kept_point_flags, scatter_kept
 
 __all__ = [
     "NO_DECISION",
@@ -167,6 +169,7 @@ class HandlerParams:
         outlier_nb_neighbors, outlier_std_ratio: statistical outlier removal.
         working_volume_mm: half-width of the working volume (axis-aligned cube about the scan frame's origin), mm;
             finite points outside it are non-physical: flagged OUT_OF_VOLUME and processed as no return.
+        threads: the compiled kernels' threads (0: automatic; the node's ``threads``, xmetro_ros.compute_threads).
     """
 
     tolerance_mm: float = 0.1
@@ -181,6 +184,7 @@ class HandlerParams:
     outlier_nb_neighbors: int = 20
     outlier_std_ratio: float = 2.0
     working_volume_mm: float = 1_000_000.0
+    threads: int = 0  # the thread budget of the compiled kernels (0: automatic, xmetro_ros.compute_threads)
 
 
 @dataclass
@@ -224,10 +228,6 @@ class ScanResult:
     model_id: str = ""
 
 
-#: ``ScanResult.decisions`` of a point without a prediction.
-NO_DECISION = 255
-
-
 def warm_up() -> float:
     """Compile, or load from numba's on-disk cache, the compiled kernels of the judge path (grid pre-processing,
     summary statistics) so the first scan does not pay for it: 0.5-1 s per process from numba's disk cache, 6-30 s
@@ -248,6 +248,9 @@ def warm_up() -> float:
     scan_stats.flag_tally(flags, fl.FLAG_BITS)
     scan_stats.abs_error_stats(np.ones((4, 3)), flags > 0)
     scan_stats.abs_error_stats(np.ones((4, 3)))
+    from . import point_flags
+
+    point_flags.warm_up()
     return time.perf_counter() - t
 
 
@@ -367,6 +370,7 @@ class ScanHandler:
         p = self.params
         if self.model is None:
             raise ScanError("MODEL_UNAVAILABLE", "no model loaded")
+        use_threads(p.threads)  # numba's count is the calling thread's: this judge's, whatever thread runs it
         scan, kept = cap_points(scan, p.max_points, p.cloud_overflow)
         try:
             scan.settings.validate(self.scanner.settings_range)
@@ -436,44 +440,24 @@ class ScanHandler:
                         "no U (NaN, flag no_uncertainty)")
         check_deadline(deadline, "flags")
         finite = np.isfinite(pred[:, 0]) & np.isfinite(pred[:, 1]) & np.isfinite(pred[:, 2])
-
         idx = np.asarray(prepared.index, dtype=np.int64)
-        dev = np.full((n, 3), np.nan, dtype=np.float64)
-        dev[idx] = pred
-        unc = np.full((n, 3), np.nan, dtype=np.float64)
-        unc[idx] = U
         flags = np.zeros(n, dtype=np.uint16)
         flags[~finite_xyz] |= fl.FLAG_INVALID_POINT
         flags[outside] |= fl.FLAG_OUT_OF_VOLUME
         flags[np.asarray(prepared.outlier, dtype=np.int64)] |= fl.FLAG_OUTLIER
-        g = prepared.geometry
-        # N·L and N·V are the features' shared intermediates (already computed when the model uses Inc/ViewAng).
-        kept_flags = fl.angle_flags(prepared.normals, g.L, g.V, p.grazing_incidence_deg, p.grazing_view_deg,
-                                    cos_i=ctx.n_dot_l(), cos_v=ctx.n_dot_v())
         lo, hi = model.domain
-        kept_flags |= fl.domain_flags(X, lo, hi, p.domain_margin)
-        if mv_ood is not None:  # the multivariate domain complements the per-feature range check
-            kept_flags[mv_ood] |= fl.FLAG_OUT_OF_DOMAIN
+        # the multivariate domain complements the per-feature range check; the shape one (a surface the
+        # calibration never covered: concave, sharp) does not widen U. N·L and N·V are the features' shared
+        # intermediates (already computed when the model uses Inc/ViewAng).
         shape_ood = self._shape_out_of_domain(prepared, model)
-        if shape_ood is not None:  # a surface shape the calibration never covered (concave, sharp): no widening
-            kept_flags[shape_ood] |= fl.FLAG_OUT_OF_DOMAIN
-        kept_flags[np.asarray(prepared.normal_quality) < p.normal_quality_min] |= fl.FLAG_UNRELIABLE_NORMAL
-        dnorm = np.sqrt(np.einsum("ij,ij->i", pred, pred))
-        kept_flags[dnorm > p.tolerance_mm] |= fl.FLAG_OVER_TOLERANCE
-        kept_flags[~finite] |= fl.FLAG_INVALID_POINT
-        no_u = finite & ~np.isfinite(U).all(axis=1)
-        kept_flags[no_u] |= fl.FLAG_NO_UNCERTAINTY
-        cls = np.full(len(pred), NO_DECISION, dtype=np.uint8)
-        cls[finite] = fl.point_decisions(pred[finite], U[finite], p.tolerance_mm, p.decision_rule)
-        kept_flags[cls == fl.NON_CONFORMING] |= fl.FLAG_NON_CONFORMING
-        kept_flags[cls == fl.UNDECIDED] |= fl.FLAG_UNDECIDED
-        flags[idx] |= kept_flags
-        decisions = np.full(n, NO_DECISION, dtype=np.uint8)
-        decisions[idx] = cls
-        # The invariant, whatever a stage did: no point with a non-finite prediction and flags 0.
-        silent = (flags == 0) & ~(np.isfinite(dev[:, 0]) & np.isfinite(dev[:, 1]) & np.isfinite(dev[:, 2]))
-        if silent.any():
-            flags[silent] |= fl.FLAG_INVALID_POINT
+        kept_flags, cls = kept_point_flags(
+            pred, U, ctx.n_dot_l(), ctx.n_dot_v(), p.grazing_incidence_deg, p.grazing_view_deg, X, lo, hi,
+            p.domain_margin, prepared.normal_quality, p.normal_quality_min, p.tolerance_mm, p.decision_rule,
+            mv_ood=mv_ood, shape_ood=shape_ood)
+        no_u = (kept_flags & fl.FLAG_NO_UNCERTAINTY) != 0
+        # d, U and the classes in the cloud's order; the invariant, whatever a stage did: no point with a
+        # non-finite prediction and flags 0
+        dev, unc, decisions = scatter_kept(n, idx, pred, U, kept_flags, cls, flags)
 
         quality = self.summarize(flags, pred, n_valid, settings_defaulted, kept is not None, n, finite=finite,
                                  U=U[finite & ~no_u], decisions=cls[finite], note=unc_note, model_id=model_id,
@@ -581,8 +565,8 @@ class ScanHandler:
             code, reason = max(code, fl.VERDICT_RESCAN), f"{rescan_reason}; {reason}"
         mean, p95 = abs_error_stats(pred, finite, 95.0)
         Ua = np.empty((0, 3)) if U is None else np.asarray(U, dtype=np.float64)
-        u_mean = Ua.mean(axis=0) if len(Ua) else np.full(3, np.nan)
-        u_p95 = np.percentile(Ua, 95, axis=0) if len(Ua) else np.full(3, np.nan)
+        # U >= 0: the statistics of |U| are those of U (numpy's mean and linear percentile, by selection)
+        u_mean, u_p95 = abs_error_stats(Ua, None, 95.0) if len(Ua) else (np.full(3, np.nan), np.full(3, np.nan))
         notes = [reason]
         if note:
             notes.append(note)

@@ -12,17 +12,21 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
+
+from .. import compute_threads  # noqa: F401 - the threading layer, before any parallel kernel runs
 
 __all__ = ["expand_u", "expand_u_conditional", "finite_rows", "from_sets", "to_sets", "warm_up"]
 
 _JIT: dict[str, Any] = {"cache": True, "nogil": True}
+# one pass split over rows: each row written by one thread, the same bits at any thread count
+_PAR: dict[str, Any] = {**_JIT, "parallel": True}
 
 
-@njit(**_JIT)
+@njit(**_PAR)
 def _nonfinite_count(X: np.ndarray) -> int:
     bad = 0
-    for i in range(X.shape[0]):
+    for i in prange(X.shape[0]):
         for j in range(X.shape[1]):
             v = X[i, j]
             if not np.isfinite(v):
@@ -60,12 +64,12 @@ def finite_rows(X: np.ndarray) -> np.ndarray | None:
 # loaded machine) 2.0 vs 12.6 ms into set order and 1.2 vs 7.4 ms back.
 
 
-@njit(**_JIT)
+@njit(**_PAR)
 def _to_sets(X: np.ndarray, pos: np.ndarray, order: np.ndarray, out: np.ndarray) -> None:
     q, p, f = X.shape
     s_all = order.shape[0]
     for v in range(q):
-        for i in range(p):
+        for i in prange(p):
             d = pos[i]
             for j in range(f):
                 out[v, d, j] = X[v, i, j]
@@ -75,11 +79,11 @@ def _to_sets(X: np.ndarray, pos: np.ndarray, order: np.ndarray, out: np.ndarray)
                 out[v, d, j] = X[v, r, j]
 
 
-@njit(**_JIT)
+@njit(**_PAR)
 def _to_sets_rows(X: np.ndarray, rows: np.ndarray, pos: np.ndarray, order: np.ndarray, out: np.ndarray) -> None:
     p = rows.shape[0]
     f = X.shape[1]
-    for i in range(p):
+    for i in prange(p):
         d = pos[i]
         r = rows[i]
         for j in range(f):
@@ -108,19 +112,19 @@ def to_sets(X: np.ndarray, pos: np.ndarray, order: np.ndarray, rows: np.ndarray 
     return out
 
 
-@njit(**_JIT)
+@njit(**_PAR)
 def _back(y: np.ndarray, order: np.ndarray, out: np.ndarray) -> None:
     q, p, c = out.shape
     for v in range(q):
-        for d in range(p):  # the real entries are the first p slots
+        for d in prange(p):  # the real entries are the first p slots
             r = order[d]
             for j in range(c):
                 out[v, r, j] = np.float64(y[v, d, j])
 
 
-@njit(**_JIT)
+@njit(**_PAR)
 def _back_rows(y: np.ndarray, order: np.ndarray, rows: np.ndarray, out: np.ndarray) -> None:
-    for d in range(rows.shape[0]):
+    for d in prange(rows.shape[0]):
         r = rows[order[d]]
         for j in range(y.shape[1]):
             out[r, j] = np.float64(y[d, j])
@@ -143,29 +147,29 @@ def from_sets(y: np.ndarray, order: np.ndarray, out: np.ndarray, rows: np.ndarra
         _back(y, order, out)
 
 
-@njit(**_JIT)
+@njit(**_PAR)
 def _expand_u(sig: np.ndarray, floor: float, mult: np.ndarray, dist: np.ndarray, out: np.ndarray) -> None:
-    for i in range(sig.shape[0]):
+    for i in prange(sig.shape[0]):
         d = np.float64(dist[i])
         w = d if d > 1.0 else 1.0  # NaN distance (no multivariate domain) → no widening
         for j in range(sig.shape[1]):
             out[i, j] = (sig[i, j] + floor) * mult[j] * w
 
 
-@njit(**_JIT)
+@njit(**_PAR)
 def _expand_u_rows(sig: np.ndarray, floor: float, mult: np.ndarray, dist: np.ndarray, out: np.ndarray) -> None:
-    for i in range(sig.shape[0]):
+    for i in prange(sig.shape[0]):
         d = np.float64(dist[i])
         w = d if d > 1.0 else 1.0
         for j in range(sig.shape[1]):
             out[i, j] = (sig[i, j] + floor) * mult[i, j] * w
 
 
-@njit(**_JIT)
+@njit(**_PAR)
 def _expand_u_cond(sig: np.ndarray, floor: float, table: np.ndarray, cos_edges: np.ndarray, exp_edges: np.ndarray,
                    cos_i: np.ndarray, expo: np.ndarray, dist: np.ndarray, out: np.ndarray) -> None:
     n_exp = exp_edges.shape[0] + 1
-    for i in range(sig.shape[0]):
+    for i in prange(sig.shape[0]):
         d = np.float64(dist[i])
         w = d if d > 1.0 else 1.0
         c = np.float64(cos_i[i])

@@ -24,7 +24,9 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
+
+from .. import compute_threads  # noqa: F401 - the threading layer, before any parallel kernel runs
 
 __all__ = ["RADIUS_MM", "grid_mean_curvature", "mean_curvature"]
 
@@ -32,22 +34,24 @@ RADIUS_MM = 1.0  # neighbour distance: ~5 normal-fit spacings at the study's den
 _MIN_DIRECTIONS = 3  # fewer valid neighbours (scan border, holes): NaN
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
 def _curvature(rows: np.ndarray, P: np.ndarray, N: np.ndarray, kr: int, kc: int) -> np.ndarray:
     """(M,) mean curvature of the M points P / N (M, 3) laid out on the grid ``rows`` (H, W): row of each cell's
     point, −1 where none. The grid holds 4 bytes a cell; the points are read where they are."""
     h, w = rows.shape
     out = np.full(P.shape[0], np.nan)
-    offs = ((kr, 0), (-kr, 0), (0, kc), (0, -kc), (kr, kc), (-kr, -kc), (kr, -kc), (-kr, kc))
-    for i in range(h):
+    # the eight directions, in this order (the sum's): arrays, as a parallel loop takes no tuple of tuples
+    dro = np.array([kr, -kr, 0, 0, kr, -kr, kr, -kr])
+    dco = np.array([0, 0, kc, -kc, kc, -kc, -kc, kc])
+    for i in prange(h):  # each point written by its own row: any thread count, the same bits
         for j in range(w):
             a0 = rows[i, j]
             if a0 < 0:
                 continue
             acc = 0.0
             cnt = 0
-            for dr, dc in offs:
-                a, b = i + dr, j + dc
+            for o in range(8):
+                a, b = i + dro[o], j + dco[o]
                 if a < 0 or a >= h or b < 0 or b >= w:
                     continue
                 k = rows[a, b]

@@ -23,13 +23,21 @@ from __future__ import annotations
 
 from typing import Any
 
+import numba
 import numpy as np
-from numba import njit
+from numba import njit, prange
+
+from ..compute_threads import row_blocks
 
 __all__ = ["box_mean", "grid_normals_planes", "grid_outliers", "kept_normals", "orient_rows", "planes", "warm_up"]
 
 # numpy float semantics: x / 0 → inf/nan, no raise
 _JIT: dict[str, Any] = {"cache": True, "nogil": True, "error_model": "numpy"}
+# Parallel drivers: each hands blocks of rows (of columns for the running sums down the columns) to the serial
+# kernel below it, compiled on its own so that it stays vectorised (a prange over the loop body itself ran 2-4x
+# slower per thread here). Every cell is written by one block with the serial float operations: the same bits at
+# any thread count.
+_PAR: dict[str, Any] = {**_JIT, "parallel": True}
 _F0 = np.float32(0.0)
 _F1 = np.float32(1.0)
 _F2 = np.float32(2.0)
@@ -37,38 +45,57 @@ _FH = np.float32(0.5)
 
 
 @njit(**_JIT)
-def _box_axis0(a: np.ndarray, size: int, out: np.ndarray) -> None:
-    """scipy uniform_filter1d(axis=0, mode="constant") of float32 (H, W) into out; rows outer for contiguity."""
-    h, w = a.shape
+def _box_axis0_cols(a: np.ndarray, size: int, out: np.ndarray, c0: int, c1: int) -> None:
+    """scipy uniform_filter1d(axis=0, mode="constant") of columns c0:c1 of float32 (H, W) into out; rows outer
+    for contiguity, the rows' slices walked with a local index (so that the loop vectorises)."""
+    h = a.shape[0]
     s1 = size // 2
     s2 = size - s1 - 1
-    tmp = np.zeros(w, np.float64)
+    n = c1 - c0
+    tmp = np.zeros(n, np.float64)
     for r in range(-s1, s2 + 1):  # the first window, in order (zero padding added too: -0.0 + 0.0 is +0.0)
         if 0 <= r < h:
-            for j in range(w):
-                tmp[j] += np.float64(a[r, j])
+            row = a[r, c0:c1]
+            for k in range(n):
+                tmp[k] += np.float64(row[k])
         else:
-            for j in range(w):
-                tmp[j] += 0.0
-    for j in range(w):
-        out[0, j] = np.float32(tmp[j] / size)
+            for k in range(n):
+                tmp[k] += 0.0
+    o0 = out[0, c0:c1]
+    for k in range(n):
+        o0[k] = np.float32(tmp[k] / size)
     for i in range(1, h):
         ra = i + s2
         rb = i - s1 - 1
-        for j in range(w):
-            va = np.float64(a[ra, j]) if ra < h else 0.0
-            vb = np.float64(a[rb, j]) if rb >= 0 else 0.0
-            tmp[j] += va - vb
-            out[i, j] = np.float32(tmp[j] / size)
+        oi = out[i, c0:c1]
+        if ra < h and rb >= 0:
+            ar = a[ra, c0:c1]
+            br = a[rb, c0:c1]
+            for k in range(n):
+                tmp[k] += np.float64(ar[k]) - np.float64(br[k])
+                oi[k] = np.float32(tmp[k] / size)
+        else:
+            for k in range(n):
+                va = np.float64(a[ra, c0 + k]) if ra < h else 0.0
+                vb = np.float64(a[rb, c0 + k]) if rb >= 0 else 0.0
+                tmp[k] += va - vb
+                oi[k] = np.float32(tmp[k] / size)
 
 
 @njit(**_JIT)
-def _box_axis1(a: np.ndarray, size: int, out: np.ndarray) -> None:
-    """scipy uniform_filter1d(axis=1, mode="constant") of float32 (H, W) into out."""
-    h, w = a.shape
+def _box_axis0(a: np.ndarray, size: int, out: np.ndarray, nt: int) -> None:
+    # one thread: the running sums are memory-bound, and column blocks on two threads were slower (0.23-0.29 vs
+    # 0.13 ms on a 348k-cell grid here: the blocks' boundaries share cache lines in every row)
+    _box_axis0_cols(a, size, out, 0, a.shape[1])
+
+
+@njit(**_JIT)
+def _box_axis1_rows(a: np.ndarray, size: int, out: np.ndarray, r0: int, r1: int) -> None:
+    """scipy uniform_filter1d(axis=1, mode="constant") of rows r0:r1 of float32 (H, W) into out."""
+    w = a.shape[1]
     s1 = size // 2
     s2 = size - s1 - 1
-    for i in range(h):
+    for i in range(r0, r1):
         tmp = 0.0
         for c in range(-s1, s2 + 1):
             if 0 <= c < w:
@@ -85,34 +112,37 @@ def _box_axis1(a: np.ndarray, size: int, out: np.ndarray) -> None:
             out[i, j] = np.float32(tmp / size)
 
 
+@njit(**_PAR)
+def _box_axis1(a: np.ndarray, size: int, out: np.ndarray, nt: int) -> None:
+    h = a.shape[0]
+    nb = row_blocks(h, nt)
+    for b in prange(nb):
+        _box_axis1_rows(a, size, out, b * h // nb, (b + 1) * h // nb)
+
+
 @njit(**_JIT)
-def _box(a: np.ndarray, size: int, out: np.ndarray, scratch: np.ndarray) -> None:
+def _box(a: np.ndarray, size: int, out: np.ndarray, scratch: np.ndarray, nt: int) -> None:
     if size == 1:  # scipy skips axes of size 1: a copy (-0.0 stays -0.0)
         out[:] = a
         return
-    _box_axis0(a, size, scratch)
-    _box_axis1(scratch, size, out)
+    _box_axis0(a, size, scratch, nt)
+    _box_axis1(scratch, size, out, nt)
 
 
 def box_mean(a: np.ndarray, size: int) -> np.ndarray:
     """``scipy.ndimage.uniform_filter(a, size, mode="constant")`` of a float32 (H, W) array, bit for bit."""
     a = np.ascontiguousarray(a, dtype=np.float32)
     out = np.empty_like(a)
-    _box(a, int(size), out, np.empty_like(a))
+    _box(a, int(size), out, np.empty_like(a), numba.get_num_threads())
     return out
 
 
 @njit(**_JIT)
-def _planes(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
-    """(X, Y, Z float32 (H, W) with NaN in invalid cells, valid (H, W), count) of (H, W, 3) points (any float)."""
-    h, w = pts.shape[0], pts.shape[1]
-    x = np.empty((h, w), np.float32)
-    y = np.empty((h, w), np.float32)
-    z = np.empty((h, w), np.float32)
-    valid = np.empty((h, w), np.bool_)
+def _planes_rows(pts: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray, valid: np.ndarray, r0: int,
+                 r1: int) -> int:
     n = 0
-    for i in range(h):
-        for j in range(w):
+    for i in range(r0, r1):
+        for j in range(pts.shape[1]):
             a = np.float32(pts[i, j, 0])  # cast first: a float64 beyond float32 range is invalid, as in numpy
             b = np.float32(pts[i, j, 1])
             c = np.float32(pts[i, j, 2])
@@ -123,60 +153,94 @@ def _planes(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
                 n += 1
             else:
                 x[i, j] = y[i, j] = z[i, j] = np.nan
-    return x, y, z, valid, n
+    return n
+
+
+@njit(**_PAR)
+def _planes(pts: np.ndarray, nt: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """(X, Y, Z float32 (H, W) with NaN in invalid cells, valid (H, W), count) of (H, W, 3) points (any float)."""
+    h, w = pts.shape[0], pts.shape[1]
+    x = np.empty((h, w), np.float32)
+    y = np.empty((h, w), np.float32)
+    z = np.empty((h, w), np.float32)
+    valid = np.empty((h, w), np.bool_)
+    nb = row_blocks(h, nt)
+    counts = np.zeros(nb, np.int64)
+    for b in prange(nb):
+        counts[b] = _planes_rows(pts, x, y, z, valid, b * h // nb, (b + 1) * h // nb)
+    return x, y, z, valid, int(counts.sum())
 
 
 def planes(grid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """(X, Y, Z, valid, number valid) of an (H, W, 3) grid, as ``preprocess._planes`` (plus the count)."""
-    return _planes(np.ascontiguousarray(grid))
+    return _planes(np.ascontiguousarray(grid), numba.get_num_threads())
+
+
+@njit(inline="always", **_JIT)
+def _step(x, y, z, i0, j0, i1, j1):
+    """Distance between cells (i0, j0) and (i1, j1), float32 (NaN where either is NaN)."""
+    dx = x[i1, j1] - x[i0, j0]
+    dy = y[i1, j1] - y[i0, j0]
+    dz = z[i1, j1] - z[i0, j0]
+    return np.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+@njit(inline="always", **_JIT)
+def _chord(x, y, z, ia, ja, i, j, ib, jb):
+    """Chord offset |p_a + p_b − 2 p| / 2 of cell (i, j) between (ia, ja) and (ib, jb), float32."""
+    kx = x[ia, ja] + x[ib, jb] - _F2 * x[i, j]
+    ky = y[ia, ja] + y[ib, jb] - _F2 * y[i, j]
+    kz = z[ia, ja] + z[ib, jb] - _F2 * z[i, j]
+    return _FH * np.sqrt(kx * kx + ky * ky + kz * kz)
 
 
 @njit(**_JIT)
-def _offsets_nearest(x, y, z):
-    """Per cell: the smallest chord offset |p- + p+ - 2p| / 2 over the grid directions with both neighbours (inf:
-    none) and the distance to the nearest valid 4-neighbour (inf: none). NaN steps never win (fmin)."""
+def _offsets_nearest_rows(x, y, z, offset, nearest, r0, r1):
     h, w = x.shape
-    offset = np.full((h, w), np.inf, np.float32)
-    nearest = np.full((h, w), np.inf, np.float32)
-    if h >= 2:
-        for i in range(h - 1):
-            for j in range(w):
-                dx = x[i + 1, j] - x[i, j]
-                dy = y[i + 1, j] - y[i, j]
-                dz = z[i + 1, j] - z[i, j]
-                s = np.sqrt(dx * dx + dy * dy + dz * dz)
-                if s < nearest[i, j]:
-                    nearest[i, j] = s
-                if s < nearest[i + 1, j]:
-                    nearest[i + 1, j] = s
-        if h >= 3:
-            for i in range(1, h - 1):
-                for j in range(w):
-                    kx = x[i - 1, j] + x[i + 1, j] - _F2 * x[i, j]
-                    ky = y[i - 1, j] + y[i + 1, j] - _F2 * y[i, j]
-                    kz = z[i - 1, j] + z[i + 1, j] - _F2 * z[i, j]
-                    o = _FH * np.sqrt(kx * kx + ky * ky + kz * kz)
-                    if o < offset[i, j]:
-                        offset[i, j] = o
-    if w >= 2:
-        for i in range(h):
-            for j in range(w - 1):
-                dx = x[i, j + 1] - x[i, j]
-                dy = y[i, j + 1] - y[i, j]
-                dz = z[i, j + 1] - z[i, j]
-                s = np.sqrt(dx * dx + dy * dy + dz * dz)
-                if s < nearest[i, j]:
-                    nearest[i, j] = s
-                if s < nearest[i, j + 1]:
-                    nearest[i, j + 1] = s
-            if w >= 3:
-                for j in range(1, w - 1):
-                    kx = x[i, j - 1] + x[i, j + 1] - _F2 * x[i, j]
-                    ky = y[i, j - 1] + y[i, j + 1] - _F2 * y[i, j]
-                    kz = z[i, j - 1] + z[i, j + 1] - _F2 * z[i, j]
-                    o = _FH * np.sqrt(kx * kx + ky * ky + kz * kz)
-                    if o < offset[i, j]:
-                        offset[i, j] = o
+    for i in range(r0, r1):
+        for j in range(w):
+            nb = np.float32(np.inf)
+            of = np.float32(np.inf)
+            if i + 1 < h:
+                s = _step(x, y, z, i, j, i + 1, j)
+                if s < nb:
+                    nb = s
+            if i >= 1:
+                s = _step(x, y, z, i - 1, j, i, j)
+                if s < nb:
+                    nb = s
+            if j + 1 < w:
+                s = _step(x, y, z, i, j, i, j + 1)
+                if s < nb:
+                    nb = s
+            if j >= 1:
+                s = _step(x, y, z, i, j - 1, i, j)
+                if s < nb:
+                    nb = s
+            if 1 <= i < h - 1:
+                o = _chord(x, y, z, i - 1, j, i, j, i + 1, j)
+                if o < of:
+                    of = o
+            if 1 <= j < w - 1:
+                o = _chord(x, y, z, i, j - 1, i, j, i, j + 1)
+                if o < of:
+                    of = o
+            nearest[i, j] = nb
+            offset[i, j] = of
+
+
+@njit(**_PAR)
+def _offsets_nearest(x, y, z, nt):
+    """Per cell: the smallest chord offset |p- + p+ - 2p| / 2 over the grid directions with both neighbours (inf:
+    none) and the distance to the nearest valid 4-neighbour (inf: none). NaN steps never win (a NaN is never
+    smaller), so each minimum is that of its finite candidates in any order: each cell from its own neighbours
+    (a step's two ends compute it alike: lower cell → higher cell)."""
+    h, w = x.shape
+    offset = np.empty((h, w), np.float32)
+    nearest = np.empty((h, w), np.float32)
+    nb = row_blocks(h, nt)
+    for b in prange(nb):
+        _offsets_nearest_rows(x, y, z, offset, nearest, b * h // nb, (b + 1) * h // nb)
     return offset, nearest
 
 
@@ -202,24 +266,18 @@ def _spacing_sample(nearest: np.ndarray, max_samples: int) -> np.ndarray:
 
 
 @njit(**_JIT)
-def _outlier_mask(valid, offset, nearest, min_offset, offset_factor, gap_thr, scale_window):
-    """The outlier rule of ``preprocess._grid_outliers_planes`` from the offsets and nearest distances."""
-    h, w = valid.shape
-    judged = np.empty((h, w), np.float32)
-    off0 = np.empty((h, w), np.float32)
-    for i in range(h):
-        for j in range(w):
+def _judged_rows(valid, offset, judged, off0, r0, r1):
+    for i in range(r0, r1):
+        for j in range(valid.shape[1]):
             jd = valid[i, j] and np.isfinite(offset[i, j])
             judged[i, j] = _F1 if jd else _F0
             off0[i, j] = offset[i, j] if jd else _F0
-    scratch = np.empty((h, w), np.float32)
-    cnt = np.empty((h, w), np.float32)
-    mean = np.empty((h, w), np.float32)
-    _box(judged, scale_window, cnt, scratch)
-    _box(off0, scale_window, mean, scratch)
-    out = np.zeros((h, w), np.bool_)
-    for i in range(h):
-        for j in range(w):
+
+
+@njit(**_JIT)
+def _mask_rows(valid, offset, nearest, judged, cnt, mean, min_offset, offset_factor, gap_thr, out, r0, r1):
+    for i in range(r0, r1):
+        for j in range(valid.shape[1]):
             if judged[i, j] != _F0:
                 m = mean[i, j]
                 if cnt[i, j] > _F0:
@@ -232,6 +290,26 @@ def _outlier_mask(valid, offset, nearest, min_offset, offset_factor, gap_thr, sc
                 nb = nearest[i, j]
                 if not np.isfinite(nb) or nb > gap_thr:
                     out[i, j] = True
+
+
+@njit(**_PAR)
+def _outlier_mask(valid, offset, nearest, min_offset, offset_factor, gap_thr, scale_window, nt):
+    """The outlier rule of ``preprocess._grid_outliers_planes`` from the offsets and nearest distances."""
+    h, w = valid.shape
+    judged = np.empty((h, w), np.float32)
+    off0 = np.empty((h, w), np.float32)
+    nb = row_blocks(h, nt)
+    for b in prange(nb):
+        _judged_rows(valid, offset, judged, off0, b * h // nb, (b + 1) * h // nb)
+    scratch = np.empty((h, w), np.float32)
+    cnt = np.empty((h, w), np.float32)
+    mean = np.empty((h, w), np.float32)
+    _box(judged, scale_window, cnt, scratch, nt)
+    _box(off0, scale_window, mean, scratch, nt)
+    out = np.zeros((h, w), np.bool_)
+    for b in prange(nb):
+        _mask_rows(valid, offset, nearest, judged, cnt, mean, min_offset, offset_factor, gap_thr, out,
+                   b * h // nb, (b + 1) * h // nb)
     return out
 
 
@@ -240,7 +318,8 @@ def grid_outliers(
     gap_factor: float, scale_window: int,
 ) -> np.ndarray:
     """Outlier mask (H, W) bool of the planes, bit-identical to ``preprocess._grid_outliers_planes``."""
-    offset, nearest = _offsets_nearest(x, y, z)
+    nt = numba.get_num_threads()
+    offset, nearest = _offsets_nearest(x, y, z, nt)
     sample = _spacing_sample(nearest, 20000)
     gap_thr = np.float32(np.inf)
     if sample.size:
@@ -248,17 +327,26 @@ def grid_outliers(
         # numpy compares the float32 distances with the Python float threshold in float32 (NEP 50: weak scalar)
         gap_thr = np.float32(gap_factor * max(spacing, 1e-9))
     return _outlier_mask(valid, offset, nearest, np.float32(min_offset_mm), np.float32(offset_factor), gap_thr,
-                         int(scale_window))
+                         int(scale_window), nt)
 
 
-@njit(**_JIT)
-def _raw_normals(x, y, z, valid):
+@njit(**_PAR)
+def _raw_normals(x, y, z, valid, nt):
     """Unit raw normals (column tangent × row tangent; 0 where undefined), as ``preprocess._grid_normals_planes``."""
     h, w = valid.shape
     nx = np.empty((h, w), np.float32)
     ny = np.empty((h, w), np.float32)
     nz = np.empty((h, w), np.float32)
-    for i in range(h):
+    nb = row_blocks(h, nt)
+    for b in prange(nb):
+        _raw_normals_rows(x, y, z, valid, nx, ny, nz, b * h // nb, (b + 1) * h // nb)
+    return nx, ny, nz
+
+
+@njit(**_JIT)
+def _raw_normals_rows(x, y, z, valid, nx, ny, nz, r0, r1):
+    h, w = valid.shape
+    for i in range(r0, r1):
         for j in range(w):
             # central difference = (0 + forward f[i]) + forward f[i-1]; f = (c[i+1] - c[i]) * both (0 across holes)
             ax = ay = az = bx = by = bz = _F0
@@ -291,7 +379,6 @@ def _raw_normals(x, y, z, valid):
             nx[i, j] = cx * inv
             ny[i, j] = cy * inv
             nz[i, j] = cz * inv
-    return nx, ny, nz
 
 
 @njit(inline="always", **_JIT)
@@ -301,16 +388,16 @@ def _zv(c, i, j, valid):
 
 
 @njit(**_JIT)
-def _smoothed(x, y, z, valid, window):
-    nx, ny, nz = _raw_normals(x, y, z, valid)
+def _smoothed(x, y, z, valid, window, nt):
+    nx, ny, nz = _raw_normals(x, y, z, valid, nt)
     if window > 1:  # window mean of the raw unit normals
         scratch = np.empty_like(nx)
         sx = np.empty_like(nx)
         sy = np.empty_like(nx)
         sz = np.empty_like(nx)
-        _box(nx, window, sx, scratch)
-        _box(ny, window, sy, scratch)
-        _box(nz, window, sz, scratch)
+        _box(nx, window, sx, scratch, nt)
+        _box(ny, window, sy, scratch, nt)
+        _box(nz, window, sz, scratch, nt)
         return sx, sy, sz
     return nx, ny, nz
 
@@ -329,13 +416,20 @@ def _finish(sx, sy, sz, ok_in):
 
 
 @njit(**_JIT)
-def _normals_planes(x, y, z, valid, window):
-    sx, sy, sz = _smoothed(x, y, z, valid, window)
+def _finish_rows(sx, sy, sz, q, valid, r0, r1):
+    for i in range(r0, r1):
+        for j in range(valid.shape[1]):
+            sx[i, j], sy[i, j], sz[i, j], q[i, j] = _finish(sx[i, j], sy[i, j], sz[i, j], valid[i, j])
+
+
+@njit(**_PAR)
+def _normals_planes(x, y, z, valid, window, nt):
+    sx, sy, sz = _smoothed(x, y, z, valid, window, nt)
     h, w = valid.shape
     q = np.empty((h, w), np.float32)
-    for i in range(h):
-        for j in range(w):
-            sx[i, j], sy[i, j], sz[i, j], q[i, j] = _finish(sx[i, j], sy[i, j], sz[i, j], valid[i, j])
+    nb = row_blocks(h, nt)
+    for b in prange(nb):
+        _finish_rows(sx, sy, sz, q, valid, b * h // nb, (b + 1) * h // nb)
     return sx, sy, sz, q
 
 
@@ -343,26 +437,23 @@ def grid_normals_planes(
     x: np.ndarray, y: np.ndarray, z: np.ndarray, valid: np.ndarray, window: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(nx, ny, nz, quality) float32 (H, W) planes, bit-identical to ``preprocess._grid_normals_planes``."""
-    return _normals_planes(x, y, z, valid, int(window))
+    return _normals_planes(x, y, z, valid, int(window), numba.get_num_threads())
 
 
 @njit(**_JIT)
-def _kept(pts, x, y, z, valid, window):
-    """Normals and quality of the valid cells only, gathered in flat order with their flat index and their points
-    (float64, from the input grid) — one pass, no full-grid normal planes kept."""
-    sx, sy, sz = _smoothed(x, y, z, valid, window)
-    h, w = valid.shape
-    m = 0
-    for i in range(h):
-        for j in range(w):
+def _count_rows(valid, r0, r1):
+    c = 0
+    for i in range(r0, r1):
+        for j in range(valid.shape[1]):
             if valid[i, j]:
-                m += 1
-    index = np.empty(m, np.int64)
-    normals = np.empty((m, 3), np.float32)
-    quality = np.empty(m, np.float32)
-    points = np.empty((m, 3), np.float64)
-    r = 0
-    for i in range(h):
+                c += 1
+    return c
+
+
+@njit(**_JIT)
+def _gather_rows(pts, sx, sy, sz, valid, index, normals, quality, points, r, r0, r1):
+    w = valid.shape[1]
+    for i in range(r0, r1):
         for j in range(w):
             if valid[i, j]:
                 index[r] = i * w + j
@@ -372,6 +463,29 @@ def _kept(pts, x, y, z, valid, window):
                 points[r, 1] = np.float64(pts[i, j, 1])
                 points[r, 2] = np.float64(pts[i, j, 2])
                 r += 1
+
+
+@njit(**_PAR)
+def _kept(pts, x, y, z, valid, window, nt):
+    """Normals and quality of the valid cells only, gathered in flat order with their flat index and their points
+    (float64, from the input grid) — one pass, no full-grid normal planes kept; each block of rows writes from
+    the count of the blocks before it."""
+    sx, sy, sz = _smoothed(x, y, z, valid, window, nt)
+    h = valid.shape[0]
+    nb = row_blocks(h, nt)
+    start = np.zeros(nb + 1, np.int64)
+    for b in prange(nb):
+        start[b + 1] = _count_rows(valid, b * h // nb, (b + 1) * h // nb)
+    for b in range(nb):
+        start[b + 1] += start[b]
+    m = start[nb]
+    index = np.empty(m, np.int64)
+    normals = np.empty((m, 3), np.float32)
+    quality = np.empty(m, np.float32)
+    points = np.empty((m, 3), np.float64)
+    for b in prange(nb):
+        _gather_rows(pts, sx, sy, sz, valid, index, normals, quality, points, start[b], b * h // nb,
+                     (b + 1) * h // nb)
     return index, normals, quality, points
 
 
@@ -380,12 +494,20 @@ def kept_normals(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(index (M,) int64 flat, normals (M, 3) float32, quality (M,) float32, points (M, 3) float64) of the valid
     cells of the planes; ``pts`` is the (H, W, 3) input the points are read from (mm)."""
-    return _kept(np.ascontiguousarray(pts), x, y, z, valid, int(window))
+    return _kept(np.ascontiguousarray(pts), x, y, z, valid, int(window), numba.get_num_threads())
+
+
+@njit(**_PAR)
+def _orient_rows(normals, quality, ref, nt):
+    m = normals.shape[0]
+    nb = row_blocks(m, nt)
+    for b in prange(nb):
+        _orient_range(normals, quality, ref, b * m // nb, (b + 1) * m // nb)
 
 
 @njit(**_JIT)
-def _orient_rows(normals, quality, ref):
-    for r in range(normals.shape[0]):
+def _orient_range(normals, quality, ref, r0, r1):
+    for r in range(r0, r1):
         n0, n1, n2 = normals[r, 0], normals[r, 1], normals[r, 2]
         if not (np.isfinite(n0) and np.isfinite(n1) and np.isfinite(n2)):  # undefined normal → the reference, q 0
             n0, n1, n2 = ref[r, 0], ref[r, 1], ref[r, 2]
@@ -401,7 +523,7 @@ def orient_rows(normals: np.ndarray, quality: np.ndarray, ref: np.ndarray) -> No
     """In place: rows of ``normals`` (M, 3) float32 that are not finite become ``ref`` (quality 0); then every row
     is flipped to a non-negative dot with ``ref`` (M, 3) float32 — ``prepare_scan``'s bad-normal rule and
     ``preprocess._orient`` in one pass."""
-    _orient_rows(normals, quality, np.ascontiguousarray(ref, dtype=np.float32))
+    _orient_rows(normals, quality, np.ascontiguousarray(ref, dtype=np.float32), numba.get_num_threads())
 
 
 def warm_up() -> float:

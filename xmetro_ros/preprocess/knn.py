@@ -4,8 +4,9 @@ outlier removal (open3d's definition) and the covariance normals (closed-form 3Ã
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
+from .. import compute_threads  # noqa: F401 - the threading layer, before any parallel kernel runs
 from .points import dedupe
 
 
@@ -148,7 +149,7 @@ def _smallest_eigvec_one(a00: float, a01: float, a02: float, a11: float, a12: fl
     return v0, v1, v2, np.sqrt(nn), l0 * sc, l1 * sc, l2 * sc
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
 def _knn_normals_kernel(c: np.ndarray, rows: np.ndarray, dist: np.ndarray, idx: np.ndarray, allowed: np.ndarray,
                         radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """Compiled :func:`_knn_normals_numpy`: the same rules and formulas row by row (float32 offsets from the
@@ -157,7 +158,7 @@ def _knn_normals_kernel(c: np.ndarray, rows: np.ndarray, dist: np.ndarray, idx: 
     r_n, k = idx.shape
     normals = np.full((r_n, 3), np.nan, np.float32)
     quality = np.zeros(r_n, np.float32)
-    for r in range(r_n):
+    for r in prange(r_n):  # each row its own normal: the same bits at any thread count
         q = rows[r]
         s0 = s1 = s2 = 0.0
         s00 = s01 = s02 = s11 = s12 = s22 = 0.0

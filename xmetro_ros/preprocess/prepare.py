@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from ..scan.geometry import point_geometry, point_geometry_posed
@@ -90,7 +91,8 @@ def prepare_scan(
         n_valid = len(vidx)
         if cfg.unorganized_method == "knn":  # one kNN query shared by the outlier removal and the normals
             keep, nk, qk = _knn_unorganized(flat[vidx], cfg.nb_neighbors, cfg.std_ratio, cfg.normal_radius_mm,
-                                            cfg.knn_normal_neighbors, remove=remove, workers=cfg.knn_workers)
+                                            cfg.knn_normal_neighbors, remove=remove,
+                                            workers=cfg.knn_workers or numba.get_num_threads())
         else:
             keep = remove_outliers(flat[vidx], cfg.nb_neighbors, cfg.std_ratio)
         outlier = vidx[~keep]

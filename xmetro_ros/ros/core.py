@@ -27,7 +27,6 @@ from ..msg import ReferenceCheck, ScannerSettings, ScanQuality
 from ..scan.assembly import AssembledScan
 from ..scan.geometry import HeadPose
 from ..scan.scanner import ScannerModel, ScanSettings, SettingsError
-from ..scan.targets import published_deviation
 from ..srv import Explain, RecommendSettings
 from .cloud import CloudFormatError, validate_cloud, xyz_fields
 from .convert import (
@@ -50,7 +49,7 @@ from .messages import (
 )
 from .output_clouds import cad_cloud, corrected_cloud, deviations_cloud
 from .output_clouds import warm_up as warm_output_kernels
-from .params import handler_params
+from .params import handler_params, onnx_threads
 from .posed_scans import PosedScan, assembled_input, choose_settings
 
 __all__ = ["LEGACY_SCANNER_ID", "CoreOutput", "SettingsEntry", "XmetroCore", "load_cad", "model_scanner_id",
@@ -104,7 +103,7 @@ class XmetroCore:
             from ..judge.features import REGISTRY
             from ..judge.inference import ModelSet
 
-            model = ModelSet.load(values["model_dir"] or None, threads=int(values["inference_threads"]))
+            model = ModelSet.load(values["model_dir"] or None, threads=onnx_threads(values))
             model.check_features(REGISTRY)
             trained_for = model_scanner_id(model.card)
             if trained_for != self.scanner.id and not values.get("allow_foreign_model", False):
@@ -136,7 +135,7 @@ class XmetroCore:
         if self.model is None or where is None:
             return None, ""
         try:
-            return load_pose_model(where, self.model, threads=int(v["inference_threads"])), ""
+            return load_pose_model(where, self.model, threads=onnx_threads(v)), ""
         except Exception as e:
             msg = f"pose model set unavailable ({path or 'shipped'}): {e}; judging with {self.model.id!r} alone"
             if self.log is not None:
@@ -361,9 +360,10 @@ class XmetroCore:
         xyz, _ = xyz_fields(msg)
         points_m = np.asarray(xyz if keep is None else xyz[keep], dtype=np.float32)
         # The one place the node's sign turns: the model's target t = nominal − measured is published as the
-        # deviation d = measured − nominal (docs/conventions.md, "Errors"); ~/corrected = measured + t = measured − d.
-        dev_cloud = deviations_cloud(msg.header, points_m, published_deviation(res.deviations), res.flags, out_h,
-                                     out_w, unc_mm=res.uncertainty)
+        # deviation d = measured − nominal (docs/conventions.md, "Errors"; deviations_cloud's from_target writes
+        # −t, NaN kept); ~/corrected = measured + t = measured − d.
+        dev_cloud = deviations_cloud(msg.header, points_m, res.deviations, res.flags, out_h, out_w,
+                                     unc_mm=res.uncertainty, from_target=True)
         corrected = corrected_cloud(msg, res.deviations, keep, out_h, out_w)
         cad_msg, cad_pose, cad_error, cad_log = self._cad_map(msg, points_m, res)
         self.history.add(JudgedScan(

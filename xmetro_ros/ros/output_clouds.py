@@ -22,9 +22,10 @@ import sys
 from typing import Any
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 from sensor_msgs.msg import PointCloud2, PointField
 
+from .. import compute_threads  # noqa: F401 - the threading layer, before any parallel kernel runs
 from .cloud import dtype_from_fields, new_cloud_message
 from .convert import M_PER_MM, mm_to_m
 
@@ -40,18 +41,22 @@ DEVIATIONS_FIELDS = (("x", 0, PointField.FLOAT32), ("y", 4, PointField.FLOAT32),
 DEVIATIONS_POINT_STEP = 44
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
 def _fill_deviations(rec: np.ndarray, rec16: np.ndarray, points_m: np.ndarray, dev_mm: np.ndarray,
-                     unc_mm: np.ndarray, has_unc: bool, flags: np.ndarray) -> None:
+                     unc_mm: np.ndarray, has_unc: bool, flags: np.ndarray, negate: bool) -> None:
     """One pass over the 44-byte records (``rec`` their float32 view (N, 11), ``rec16`` their uint16 view (N, 22)):
     the float operations of the numpy version, in its order — metres = float32(mm × 1e-3), dnorm = float32 sqrt of
-    ((dx² + dy²) + dz²) in float32 — so the bytes are the same."""
+    ((dx² + dy²) + dz²) in float32 — so the bytes are the same. ``negate``: write −d (NaN kept as it is: the
+    published deviation from the model's target, :func:`xmetro_ros.scan.targets.published_deviation`)."""
     nan32 = np.float32(np.nan)
-    for i in range(rec.shape[0]):
+    for i in prange(rec.shape[0]):
         acc = np.float32(0.0)
         for k in range(3):
             rec[i, k] = points_m[i, k]
-            d = np.float32(dev_mm[i, k] * 1e-3)
+            v = dev_mm[i, k]
+            if negate and not np.isnan(v):
+                v = -v
+            d = np.float32(v * 1e-3)
             rec[i, 3 + k] = d
             acc += d * d
             rec[i, 7 + k] = np.float32(unc_mm[i, k] * 1e-3) if has_unc else nan32
@@ -62,16 +67,20 @@ def _fill_deviations(rec: np.ndarray, rec16: np.ndarray, points_m: np.ndarray, d
 def warm_up() -> None:
     """Compile (or load from numba's cache) the record kernel now, not on the first scan."""
     rec = np.zeros((1, DEVIATIONS_POINT_STEP // 4), np.float32)
-    _fill_deviations(rec, rec.view(np.uint16), np.zeros((1, 3), np.float32), np.zeros((1, 3)), np.zeros((1, 3)), True,
-                     np.zeros(1, np.uint16))
+    for neg in (False, True):
+        _fill_deviations(rec, rec.view(np.uint16), np.zeros((1, 3), np.float32), np.zeros((1, 3)), np.zeros((1, 3)),
+                         True, np.zeros(1, np.uint16), neg)
+    recs = np.zeros((1, 4), np.float32)
+    _shift_records(recs, recs, np.zeros(1, np.int64), False, np.zeros((1, 3)), 0)
 
 
 def deviations_cloud(header: Any, points_m: np.ndarray, dev_mm: np.ndarray, flags: np.ndarray, height: int,
-                     width: int, unc_mm: np.ndarray | None = None) -> PointCloud2:
+                     width: int, unc_mm: np.ndarray | None = None, from_target: bool = False) -> PointCloud2:
     """``~/deviations``: ``points_m`` (N, 3) float32 metres as received, ``dev_mm`` (N, 3) predicted deviation
     d = measured − nominal in mm (NaN where none), ``unc_mm`` (N, 3) its expanded uncertainty U (95 %) in mm
     (NaN where none; None: all NaN), ``flags`` (N,) uint16; ``height × width = N``. Layout
-    :data:`DEVIATIONS_FIELDS`, 44 bytes a point."""
+    :data:`DEVIATIONS_FIELDS`, 44 bytes a point. ``from_target``: ``dev_mm`` is the model's target t = nominal −
+    measured and d = −t is written (the same bytes as passing ``published_deviation(dev_mm)``, without its copy)."""
     n = int(height) * int(width)
     if points_m.shape[0] != n or dev_mm.shape[0] != n or flags.shape[0] != n:
         raise ValueError(f"height {height} × width {width} != {points_m.shape[0]} points")
@@ -84,7 +93,7 @@ def deviations_cloud(header: Any, points_m: np.ndarray, dev_mm: np.ndarray, flag
         unc = np.zeros((1, 3)) if unc_mm is None else np.ascontiguousarray(unc_mm, dtype=np.float64)
         _fill_deviations(rec, rec16, np.ascontiguousarray(points_m, dtype=np.float32),
                          np.ascontiguousarray(dev_mm, dtype=np.float64), unc, unc_mm is not None,
-                         np.ascontiguousarray(flags, dtype=np.uint16))
+                         np.ascontiguousarray(flags, dtype=np.uint16), bool(from_target))
         del rec, rec16
     cloud = new_cloud_message(header=header, height=int(height), width=int(width),
                               is_dense=False,
@@ -128,6 +137,25 @@ def cad_cloud(header: Any, points_m: np.ndarray, index: np.ndarray, before_mm: n
     return cloud
 
 
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
+def _shift_records(rec: np.ndarray, src: np.ndarray, keep: np.ndarray, use_keep: bool, target_mm: np.ndarray,
+                   c: int) -> None:
+    """rec[r] = src[keep[r]] (src[r] without ``use_keep``), then its float32 x, y, z (columns c..c+2) + the shift
+    float32(t) × float32(1e-3), 0 where not finite — numpy's ``astype`` / multiply / mask / ``+=``, in float32, so the
+    bytes are the goldens'."""
+    m = np.float32(M_PER_MM)
+    z = np.float32(0.0)
+    for r in prange(rec.shape[0]):
+        s = keep[r] if use_keep else np.int64(r)
+        for j in range(rec.shape[1]):
+            rec[r, j] = src[s, j]
+        for k in range(3):
+            sh = np.float32(target_mm[r, k]) * m
+            if not np.isfinite(sh):
+                sh = z
+            rec[r, c + k] = rec[r, c + k] + sh
+
+
 def corrected_cloud(msg: PointCloud2, target_mm: np.ndarray, keep: np.ndarray | None, height: int,
                     width: int) -> PointCloud2:
     """The input cloud (same fields and byte order) with x, y, z + t, t the model's target (nominal − measured):
@@ -140,9 +168,6 @@ def corrected_cloud(msg: PointCloud2, target_mm: np.ndarray, keep: np.ndarray | 
         keep: indices of the kept input points (decimated scans), None for all.
         height, width: shape of the output (``height × width = N``).
     """
-    # float32 arithmetic on purpose: the published clouds are float32 and must stay bit-identical to the goldens.
-    shift = target_mm.astype(np.float32) * np.float32(M_PER_MM)
-    shift[~np.isfinite(shift)] = 0.0
     by = {f.name: f for f in msg.fields}
     ps = int(msg.point_step)
     fx = by["x"]
@@ -154,17 +179,18 @@ def corrected_cloud(msg: PointCloud2, target_mm: np.ndarray, keep: np.ndarray | 
             and by["y"].offset == fx.offset + 4 and by["z"].offset == fx.offset + 8
             and int(msg.row_step) == ps * int(msg.width))
     if fast and n_out:
-        # The common case (our own clouds): one copy of the (kept) records into the buffer, x, y, z adjusted there.
+        # The common case (our own clouds): one compiled pass copies the (kept) records into the buffer and adjusts
+        # x, y, z there.
         src = np.frombuffer(msg.data, dtype=np.float32).reshape(-1, ps // 4)
         rec = np.frombuffer(buf, dtype=np.float32).reshape(n_out, ps // 4)
-        if keep is not None:
-            np.take(src, keep, axis=0, out=rec)
-        else:
-            rec[:] = src
-        c = fx.offset // 4
-        rec[:, c:c + 3] += shift
+        idx = np.zeros(0, np.int64) if keep is None else np.ascontiguousarray(keep, dtype=np.int64)
+        _shift_records(rec, src, idx, keep is not None, np.ascontiguousarray(target_mm, dtype=np.float64),
+                       fx.offset // 4)
         del rec
     elif n_out:
+        # float32 arithmetic on purpose: the published clouds are float32 and must stay bit-identical to the goldens
+        shift = target_mm.astype(np.float32) * np.float32(M_PER_MM)
+        shift[~np.isfinite(shift)] = 0.0
         dt = dtype_from_fields(msg.fields, ps, is_bigendian=bool(msg.is_bigendian))
         raw: np.ndarray = np.ndarray(shape=(int(msg.height), int(msg.width)), dtype=dt, buffer=msg.data,
                                      strides=(int(msg.row_step), ps)).reshape(-1)

@@ -48,8 +48,11 @@ PARAMS: tuple[ParamSpec, ...] = (
               read_only=True),
     ParamSpec("allow_foreign_model", False, "", "use a model set trained for another scanner than scanner_config's "
               "(refused by default: the node starts degraded and says why)", read_only=True),
-    ParamSpec("inference_threads", 1, "threads", "ONNX Runtime intra-op threads (1: fastest on the shared 2-core "
-              "machine, bench/bench_node.py)", 1, 16, read_only=True),
+    ParamSpec("threads", 0, "threads", "the judge's thread budget, shared by its compiled kernels and ONNX Runtime "
+              "(they run one after the other); 0 = the CPUs this process may use less one (1 on 2 cores), at most "
+              "16", 0, 256, read_only=True),
+    ParamSpec("inference_threads", 0, "threads", "ONNX Runtime intra-op threads when not the thread budget's "
+              "(0 = threads)", 0, 256, read_only=True),
     ParamSpec("default_lateral_density", 10000.0, "1/m", "settings used when none received: points per metre "
               "along the laser line", 1.0, 1e6),
     ParamSpec("default_direction_density", 4000.0, "1/m", "settings used when none received: profiles per metre "
@@ -266,6 +269,15 @@ def values_from_node(node: Any) -> dict[str, Any]:
     return out
 
 
+def onnx_threads(v: dict[str, Any]) -> int:
+    """ONNX Runtime intra-op threads from the node's values: ``inference_threads``, else the thread budget
+    (``threads``, 0 = automatic: :func:`xmetro_ros.compute_threads.resolve_threads`)."""
+    from ..compute_threads import resolve_threads
+
+    n = int(v.get("inference_threads", 0))
+    return n if n > 0 else resolve_threads(int(v.get("threads", 0)))
+
+
 def handler_params(v: dict[str, Any]) -> HandlerParams:
     """The core's :class:`~xmetro_ros.judge.scan_handler.HandlerParams` (mm) from the node's parameter values (SI)."""
     return HandlerParams(
@@ -286,4 +298,5 @@ def handler_params(v: dict[str, Any]) -> HandlerParams:
         outlier_nb_neighbors=int(v["outlier_nb_neighbors"]),
         outlier_std_ratio=float(v["outlier_std_ratio"]),
         working_volume_mm=float(m_to_mm(float(v.get("working_volume", 1000.0)))),
+        threads=int(v.get("threads", 0)),
     )

@@ -137,8 +137,12 @@ class ProfileInput(NodeMixin):
             except Exception as e:
                 if self._stream_stop.is_set() or not self.context.ok():
                     return  # shut down while spinning
-                self.get_logger().error(f"profile input: a callback failed and was skipped: {type(e).__name__}: "
-                                        f"{e}\n{traceback.format_exc(limit=-3)}", throttle_duration_sec=1.0)
+                what = f"profile input: a callback failed and was skipped: {type(e).__name__}: {e}"
+                self.get_logger().error(f"{what}\n{traceback.format_exc(limit=-3)}", throttle_duration_sec=1.0)
+                if self.diag is not None:  # a WARN on /diagnostics for loss_warn_period, with the accounting
+                    with self._stream_lock:
+                        values = self.stream.values() if self.stream is not None else {}
+                    self.diag.on_profiles(values, problem=what)
 
     def _on_driver_settings(self, ds: Any) -> None:
         """The driver's parameters changed: the values it gives (exposure, lateral density) for the next scans."""

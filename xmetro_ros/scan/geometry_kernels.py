@@ -10,12 +10,14 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
+
+from .. import compute_threads  # noqa: F401 - the threading layer, before any parallel kernel runs
 
 __all__ = ["posed_geometry"]
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
 def posed_geometry(points: np.ndarray, pose_index: np.ndarray, positions: np.ndarray, rotations: np.ndarray,
                    camera: np.ndarray, s_origin: np.ndarray, s_axis: np.ndarray, out: np.ndarray, z_out: np.ndarray,
                    s_out: np.ndarray) -> None:  # pragma: no cover - compiled
@@ -23,7 +25,7 @@ def posed_geometry(points: np.ndarray, pose_index: np.ndarray, positions: np.nda
     the position along ``s_axis`` from ``s_origin`` (mm). Point n is seen from pose ``pose_index[n]``: head
     coordinates p_h = R^T (p − o); the source on the point's head-Y line; the camera at ``camera`` from it."""
     cx, cy, cz = camera[0], camera[1], camera[2]
-    for n in range(points.shape[0]):
+    for n in prange(points.shape[0]):
         k = pose_index[n]
         d0 = points[n, 0] - positions[k, 0]
         d1 = points[n, 1] - positions[k, 1]
