@@ -28,6 +28,20 @@ def pytest_configure(config) -> None:
         runner = str(ROOT / "tools" / "netns_run")
         os.execv(runner, [runner, sys.executable, "-m", "pytest", *config.invocation_params.args])
     apply_ros_env()
+    _warm_kernels()
+
+
+def _warm_kernels() -> None:
+    """Compile the judge's numba kernels into their on-disk cache once, before any test: the first compilation of
+    the parallel kernels takes about a minute on a fresh clone (docs/performance.md), which would otherwise fall
+    inside the first test that starts a node process and waits for it."""
+    from xmetro_ros.judge import point_flags, scan_handler, set_kernels
+    from xmetro_ros.ros import output_clouds
+
+    scan_handler.warm_up()
+    set_kernels.warm_up()
+    point_flags.warm_up()
+    output_clouds.warm_up()
 
 
 #: Set by .ci/run: in CI a missing ../shared/data is a failure, never a silent skip.

@@ -251,6 +251,10 @@ def warm_up() -> float:
     from . import point_flags
 
     point_flags.warm_up()
+    from ..scan.geometry import point_geometry_posed
+
+    rp = RowPoses(np.zeros((1, 3)), np.eye(3)[None], np.zeros(1, np.int32))
+    point_geometry_posed(np.ones((1, 3)), np.zeros(1, np.int64), rp, np.array([10.0, 0.0, 0.0]))
     return time.perf_counter() - t
 
 
