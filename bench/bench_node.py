@@ -113,7 +113,7 @@ def in_process(reps: int, model_dir: str) -> dict:
     from xmetro_ros.scan.scan import Scan
 
     core, values = _core(model_dir)
-    from xmetro_ros.compute_threads import resolve_threads
+    from xmetro_ros.compute.threads import resolve_threads
 
     out: dict = {"model_id": core.model_id, "threads": resolve_threads(int(values["threads"])),
                  "kernels_warm_up_s": round(core.handler.warm_up_s, 3)}

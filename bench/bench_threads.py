@@ -91,7 +91,7 @@ def _stages(core, msg, scan) -> dict[str, float]:
 
 
 def measure(counts: list[int], reps: int, model_dir: str) -> dict:
-    from xmetro_ros.compute_threads import resolve_threads
+    from xmetro_ros.compute.threads import resolve_threads
     from xmetro_ros.ros.convert import scan_to_cloud, settings_to_msg
     from xmetro_ros.scan.scan import Scan
 
@@ -153,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     counts = [int(c) for c in args.threads.split(",")]
     import numba
 
-    from xmetro_ros.compute_threads import available_cpus, max_threads
+    from xmetro_ros.compute.threads import available_cpus, max_threads
 
     result = {"machine": {"cpu": _cpu_model(), "cpus_available": available_cpus(), "numba_threads_max": max_threads(),
                           "python": platform.python_version()},

@@ -1,4 +1,4 @@
-"""The judge's thread budget (xmetro_ros.compute_threads, the node's ``threads``): the same scan judged with 1 and
+"""The judge's thread budget (xmetro_ros.compute.threads, the node's ``threads``): the same scan judged with 1 and
 with every thread numba has gives the same bits in every output — deviations, U, flags, decisions, normals,
 curvature, the quality summary — for an organized scan, a profile-posed one and an unorganized one; ONNX Runtime's
 intra-op threads follow the budget; the budget's default and its bounds."""
@@ -11,7 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from xmetro_ros import compute_threads as ct
+from xmetro_ros.compute import threads as ct
 from xmetro_ros.judge.inference import ModelSet
 from xmetro_ros.judge.scan_handler import HandlerParams, ScanHandler
 from xmetro_ros.preprocess.curvature import mean_curvature

@@ -4,5 +4,5 @@ inference with U and domains, the flag bits and verdict rules, the compiled set 
 PointNet point sets — plus the explanation of a judged scan (permutation SHAP, the judged-scan history behind
 ``~/explain``). The node's live path: no PyTorch, no training library.
 
-May import: scan, preprocess.
+May import: scan, preprocess, compute.
 """

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 from numba import njit, prange
 
-from .. import compute_threads  # noqa: F401 - the threading layer, before any parallel kernel runs
+from ..compute import threads as _threads  # noqa: F401 - the threading layer, before any parallel kernel runs
 from . import flags as fl
 
 __all__ = ["NO_DECISION", "kept_point_flags", "scatter_kept"]

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from ..compute_threads import use_threads
+from ..compute.threads import use_threads
 from ..scan.geometry import HeadPose, RowPoses
 from ..scan.scan import Scan
 from ..scan.scanner import ScannerModel, SettingsError
@@ -169,7 +169,7 @@ class HandlerParams:
         outlier_nb_neighbors, outlier_std_ratio: statistical outlier removal.
         working_volume_mm: half-width of the working volume (axis-aligned cube about the scan frame's origin), mm;
             finite points outside it are non-physical: flagged OUT_OF_VOLUME and processed as no return.
-        threads: the compiled kernels' threads (0: automatic; the node's ``threads``, xmetro_ros.compute_threads).
+        threads: the compiled kernels' threads (0: automatic; the node's ``threads``, xmetro_ros.compute.threads).
     """
 
     tolerance_mm: float = 0.1
@@ -184,7 +184,7 @@ class HandlerParams:
     outlier_nb_neighbors: int = 20
     outlier_std_ratio: float = 2.0
     working_volume_mm: float = 1_000_000.0
-    threads: int = 0  # the thread budget of the compiled kernels (0: automatic, xmetro_ros.compute_threads)
+    threads: int = 0  # the thread budget of the compiled kernels (0: automatic, xmetro_ros.compute.threads)
 
 
 @dataclass

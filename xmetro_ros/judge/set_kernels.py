@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from numba import njit, prange
 
-from .. import compute_threads  # noqa: F401 - the threading layer, before any parallel kernel runs
+from ..compute import threads as _threads  # noqa: F401 - the threading layer, before any parallel kernel runs
 
 __all__ = ["expand_u", "expand_u_conditional", "finite_rows", "from_sets", "to_sets", "warm_up"]
 

@@ -27,7 +27,7 @@ Modules (one job each): :mod:`.config` (parameters, ``Prepared``, errors), :mod:
 :mod:`.open3d_ref` (unorganized methods), :mod:`.normals` (``estimate_normals`` dispatcher), :mod:`.prepare`
 (``prepare_scan``).
 
-May import: scan.
+May import: scan, compute.
 """
 
 from .config import GRID_BACKENDS, UNORGANIZED_METHODS, Prepared, PreprocessConfig, PreprocessError

@@ -31,7 +31,7 @@ class PreprocessConfig:
         knn_normal_neighbors: the knn method's neighbours per normal (the query's k is max(nb_neighbors, this));
             20 rather than 30 makes the path 10-25 % cheaper at a normal accuracy inside the stated bounds.
         knn_workers: threads for the kNN query; 0 (default): the calling thread's numba thread count, i.e. the
-            judge's thread budget (xmetro_ros.compute_threads).
+            judge's thread budget (xmetro_ros.compute.threads).
         use_grid: use the organized-grid path when the scan is organized.
         grid_backend: ``"numba"`` (compiled kernels, default) or ``"numpy"``: the same rules with bit-identical
             outlier masks, normals and quality (see xmetro_ros.preprocess.grid_kernels); numpy is kept as the reference.

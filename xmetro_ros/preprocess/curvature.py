@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from numba import njit, prange
 
-from .. import compute_threads  # noqa: F401 - the threading layer, before any parallel kernel runs
+from ..compute import threads as _threads  # noqa: F401 - the threading layer, before any parallel kernel runs
 
 __all__ = ["RADIUS_MM", "grid_mean_curvature", "mean_curvature"]
 

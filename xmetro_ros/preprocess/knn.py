@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .. import compute_threads  # noqa: F401 - the threading layer, before any parallel kernel runs
+from ..compute import threads as _threads  # noqa: F401 - the threading layer, before any parallel kernel runs
 from .points import dedupe
 
 

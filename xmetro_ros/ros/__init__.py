@@ -7,5 +7,5 @@ parameters, diagnostics, the DDS environment, the node (:mod:`.node`), rclpy hel
 (:mod:`.scan_io`) and the node's outputs in bags (:mod:`.node_outputs`). Never the command-line tools, training
 (``learn``, ``calibrate``) or the closed loop: the node does not load the training stack.
 
-May import: scan, bag, judge, parts, plan, monitor, msg, srv, action.
+May import: scan, bag, judge, parts, plan, monitor, compute, msg, srv, action.
 """

@@ -25,7 +25,7 @@ import numpy as np
 from numba import njit, prange
 from sensor_msgs.msg import PointCloud2, PointField
 
-from .. import compute_threads  # noqa: F401 - the threading layer, before any parallel kernel runs
+from ..compute import threads as _threads  # noqa: F401 - the threading layer, before any parallel kernel runs
 from .cloud import dtype_from_fields, new_cloud_message
 from .convert import M_PER_MM, mm_to_m
 

@@ -271,8 +271,8 @@ def values_from_node(node: Any) -> dict[str, Any]:
 
 def onnx_threads(v: dict[str, Any]) -> int:
     """ONNX Runtime intra-op threads from the node's values: ``inference_threads``, else the thread budget
-    (``threads``, 0 = automatic: :func:`xmetro_ros.compute_threads.resolve_threads`)."""
-    from ..compute_threads import resolve_threads
+    (``threads``, 0 = automatic: :func:`xmetro_ros.compute.threads.resolve_threads`)."""
+    from ..compute.threads import resolve_threads
 
     n = int(v.get("inference_threads", 0))
     return n if n > 0 else resolve_threads(int(v.get("threads", 0)))

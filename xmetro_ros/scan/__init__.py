@@ -8,5 +8,5 @@ of single profiles with their sensor poses into organized scans (``assembly.py``
 It owns no processing: no pre-processing, no model, no ROS. Meshes live here, not in ``parts``, because a mesh is
 an artifact like a sphere: the virtual scanner scans it and a ``Scan`` records it.
 
-May import: nothing of xmetro_ros.
+May import: compute.
 """

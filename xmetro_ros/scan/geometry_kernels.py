@@ -12,7 +12,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from .. import compute_threads  # noqa: F401 - the threading layer, before any parallel kernel runs
+from ..compute import threads as _threads  # noqa: F401 - the threading layer, before any parallel kernel runs
 
 __all__ = ["posed_geometry"]
 
