@@ -50,48 +50,42 @@ _FH = np.float32(0.5)
 
 
 @njit(**_JIT)
-def _box_axis0_cols(a: np.ndarray, size: int, out: np.ndarray, c0: int, c1: int) -> None:
-    """scipy uniform_filter1d(axis=0, mode="constant") of columns c0:c1 of float32 (H, W) into out; rows outer
-    for contiguity, the rows' slices walked with a local index (so that the loop vectorises)."""
-    h = a.shape[0]
+def _box_axis0(a: np.ndarray, size: int, out: np.ndarray) -> None:
+    """scipy uniform_filter1d(axis=0, mode="constant") of float32 (H, W) into out; rows outer for contiguity, the
+    rows walked with a local index (so that the loop vectorises). One thread: the running sums are memory-bound,
+    and column blocks on two threads were slower (0.23-0.29 vs 0.13 ms on a 348k-cell grid here: the blocks'
+    boundaries share cache lines in every row)."""
+    h, n = a.shape
     s1 = size // 2
     s2 = size - s1 - 1
-    n = c1 - c0
     tmp = np.zeros(n, np.float64)
     for r in range(-s1, s2 + 1):  # the first window, in order (zero padding added too: -0.0 + 0.0 is +0.0)
         if 0 <= r < h:
-            row = a[r, c0:c1]
+            row = a[r]
             for k in range(n):
                 tmp[k] += np.float64(row[k])
         else:
             for k in range(n):
                 tmp[k] += 0.0
-    o0 = out[0, c0:c1]
+    o0 = out[0]
     for k in range(n):
         o0[k] = np.float32(tmp[k] / size)
     for i in range(1, h):
         ra = i + s2
         rb = i - s1 - 1
-        oi = out[i, c0:c1]
+        oi = out[i]
         if ra < h and rb >= 0:
-            ar = a[ra, c0:c1]
-            br = a[rb, c0:c1]
+            ar = a[ra]
+            br = a[rb]
             for k in range(n):
                 tmp[k] += np.float64(ar[k]) - np.float64(br[k])
                 oi[k] = np.float32(tmp[k] / size)
         else:
             for k in range(n):
-                va = np.float64(a[ra, c0 + k]) if ra < h else 0.0
-                vb = np.float64(a[rb, c0 + k]) if rb >= 0 else 0.0
+                va = np.float64(a[ra, k]) if ra < h else 0.0
+                vb = np.float64(a[rb, k]) if rb >= 0 else 0.0
                 tmp[k] += va - vb
                 oi[k] = np.float32(tmp[k] / size)
-
-
-@njit(**_JIT)
-def _box_axis0(a: np.ndarray, size: int, out: np.ndarray, nt: int) -> None:
-    # one thread: the running sums are memory-bound, and column blocks on two threads were slower (0.23-0.29 vs
-    # 0.13 ms on a 348k-cell grid here: the blocks' boundaries share cache lines in every row)
-    _box_axis0_cols(a, size, out, 0, a.shape[1])
 
 
 @njit(**_JIT)
@@ -130,7 +124,7 @@ def _box(a: np.ndarray, size: int, out: np.ndarray, scratch: np.ndarray, nt: int
     if size == 1:  # scipy skips axes of size 1: a copy (-0.0 stays -0.0)
         out[:] = a
         return
-    _box_axis0(a, size, scratch, nt)
+    _box_axis0(a, size, scratch)
     _box_axis1(scratch, size, out, nt)
 
 
