@@ -12,8 +12,9 @@ scan), prepare (outliers, normals, geometry), features, predict (ONNX call, U in
 
     python bench/bench_threads.py [--threads 1,2] [--reps 9] [--out bench/results/threads.json]
 
-``make bench`` runs it at 1 and 2 threads on this machine; on a bigger one (the ``device`` tool, when one is lent)
-``--threads 1,2,4,8,16 --out bench/results/threads_16core.json`` gives the scaling table of docs/performance.md.
+``make bench`` runs it at 1 and 2 threads on this machine. On a bigger one without ROS (the ``device`` tool, when
+one is lent) bench/bench_scaling.py measures the ROS-free judge at 1/2/4/8/16 threads: the scaling table of
+docs/node.md (bench/results/scaling_16core.json).
 """
 
 from __future__ import annotations

@@ -1,10 +1,13 @@
 """The judge's thread budget (xmetro_ros.compute.threads, the node's ``threads``): the same scan judged with 1 and
 with every thread numba has gives the same bits in every output — deviations, U, flags, decisions, normals,
 curvature, the quality summary — for an organized scan, a profile-posed one and an unorganized one; ONNX Runtime's
-intra-op threads follow the budget; the budget's default and its bounds."""
+intra-op threads follow the budget; the budget's default and its bounds; the helper threads of ``parallel_for``
+(every item once, errors to the caller, nested calls inline) and the features split into row blocks on them (the
+same bits)."""
 
 from __future__ import annotations
 
+import itertools
 import threading
 from dataclasses import replace
 
@@ -128,3 +131,61 @@ def test_threading_layer_is_threadsafe(judged):
     for r in out:
         _same(ref, r)
     assert numba.threading_layer() in ("tbb", "omp")
+
+
+def test_parallel_for_runs_every_item_once_and_raises_the_first_error():
+    """Items run once each, on up to ``threads`` threads (the caller among them); an exception reaches the caller
+    after the other items ran; called from a helper (nested) it runs inline."""
+    seen: list[tuple[int, str]] = []
+    lock = threading.Lock()
+
+    def fn(i: int) -> None:
+        with lock:
+            seen.append((i, threading.current_thread().name))
+
+    ct.parallel_for(fn, 37, 4)
+    assert sorted(i for i, _ in seen) == list(range(37))
+    assert len({name for _, name in seen}) <= 4
+    seen.clear()
+    ct.parallel_for(fn, 5, 1)
+    assert {name for _, name in seen} == {threading.current_thread().name}
+
+    def bad(i: int) -> None:
+        fn(i)
+        if i == 3:
+            raise KeyError("item 3")
+
+    seen.clear()
+    with pytest.raises(KeyError, match="item 3"):
+        ct.parallel_for(bad, 10, 3)
+    assert sorted(i for i, _ in seen) == list(range(10))
+    inner: list[str] = []
+
+    def outer(i: int) -> None:
+        ct.parallel_for(lambda j: inner.append(threading.current_thread().name), 3, 3)
+
+    ct.parallel_for(outer, 4, 2)
+    assert len(inner) == 12
+    assert ct.block_bounds(100, 1, 10) == [(0, 100)]
+    b = ct.block_bounds(100_000, 3, 1000, per_thread=2)
+    assert len(b) == 6 and b[0][0] == 0 and b[-1][1] == 100_000 and all(x[1] == y[0] for x, y in itertools.pairwise(b))
+    assert ct.block_bounds(1500, 8, 1000) == [(0, 1500)]
+
+
+def test_feature_row_blocks_give_the_same_bits(judged):
+    """Features computed in row blocks on several threads (more than this machine has) are bit for bit the
+    one-pass results; a bad normal's error names the cloud's point, not a block's."""
+    from xmetro_ros.judge.features import STUDY_FEATURES, FeatureContext, FeatureError, compute_features
+
+    scanner, models, scan = judged
+    prep = _judge(scan, 1, models[THREADS[0]], scanner).prepared
+    one_ctx, many_ctx = FeatureContext.from_prepared(prep), FeatureContext.from_prepared(prep)
+    np.testing.assert_array_equal(compute_features(STUDY_FEATURES, one_ctx, threads=1),
+                                  compute_features(STUDY_FEATURES, many_ctx, threads=4))
+    for key in ("NdotL", "NdotV", "|NxL|"):  # the blocks' shared intermediates, joined for the flags
+        np.testing.assert_array_equal(one_ctx._cache[key], many_ctx._cache[key])
+    n = prep.normals.copy()
+    n[len(n) - 5] = 0.0
+    ctx = replace(FeatureContext.from_prepared(prep), normals=n)
+    with pytest.raises(FeatureError, match=f"point {len(n) - 5}:"):
+        compute_features(STUDY_FEATURES, ctx, threads=4)

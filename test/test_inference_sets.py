@@ -221,3 +221,30 @@ def test_batch_with_uncertainty_is_each_version_alone(default, features, n):
         assert np.array_equal(d[k], r.errors) and np.array_equal(U[k], r.U, equal_nan=True)
     assert np.array_equal(d, default.predict_batch(Xq))
     assert np.array_equal(U, default.predict_batch(Xq, output="uncertainty"), equal_nan=True)
+
+
+@pytest.mark.parametrize("threads", (2, 5))
+def test_runs_side_by_side_give_the_same_bits(default, features, threads):
+    """A model set loaded with several threads runs its chunks of sets side by side, in smaller chunks (load
+    balance), and its domain distance in row blocks: errors, σ̂, U, the distance and the batch path give exactly
+    what one thread gives."""
+    par = ModelSet.load(threads=threads)
+    assert par.threads == threads and len(range(0, 200, par._chunk(200))) >= 2 * threads  # every thread busy
+    assert par._chunk(10**6) == par.set_chunk and default._chunk(200) == default.set_chunk
+    X = _with_bad_rows(features, 9)
+    one, many = default.predict_with_uncertainty(X), par.predict_with_uncertainty(X)
+    for a in ("errors", "sigma", "U", "domain_distance", "out_of_domain"):
+        assert np.array_equal(getattr(one, a), getattr(many, a), equal_nan=True), a
+    big = np.tile(X, (3, 1))  # 19k rows: several blocks of the distance
+    assert np.array_equal(default.domain_distance(big), par.domain_distance(big), equal_nan=True)
+    Xq = np.stack([features[:137], features[137:274]])
+    for a, b in zip(default.predict_batch_with_uncertainty(Xq), par.predict_batch_with_uncertainty(Xq), strict=True):
+        assert np.array_equal(a, b, equal_nan=True)
+
+
+def test_a_failing_run_on_the_pool_raises_in_the_caller():
+    """An ONNX Runtime error inside a pooled run reaches the caller (not lost in a worker thread)."""
+    par = ModelSet.load(threads=2)
+    bad = np.zeros((300, 50, len(par.feature_names) + 1), np.float32)  # one feature too many
+    with pytest.raises(Exception, match=r"(?i)dimension|shape|invalid"):
+        par._run_sets(bad, False)

@@ -1,7 +1,8 @@
 """The compiled per-point flags and decisions (judge/point_flags.py) give what the numpy composition of
 judge/flags.py gives — angle, domain (range, multivariate, shape), normal quality, tolerance, invalid, no-U bits and
 the ISO 14253-1 classes under both rules — on random kept points with NaN predictions, NaN U, NaN features and
-values at the thresholds; the scatter into the cloud keeps the no-silent-NaN invariant; bad inputs raise."""
+values at the thresholds; the scatter into the cloud keeps the no-silent-NaN invariant; the point masks and base
+flags are the numpy expressions they replace; bad inputs raise."""
 
 from __future__ import annotations
 
@@ -11,7 +12,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from xmetro_ros.judge import flags as fl
-from xmetro_ros.judge.point_flags import NO_DECISION, kept_point_flags, scatter_kept
+from xmetro_ros.judge.point_flags import NO_DECISION, base_flags, kept_point_flags, point_masks, scatter_kept
+from xmetro_ros.judge.scan_handler import volume_mask
+from xmetro_ros.scan.scan import Scan
 
 
 def _numpy(pred, U, cos_i, cos_v, gi, gv, X, lo, hi, margin, nq, nq_min, tol, rule, mv, shape):
@@ -103,3 +106,32 @@ def test_bad_inputs_raise():
         kept_point_flags(p, p, *args, 0.1, "lenient")
     with pytest.raises(ValueError, match="U must be >= 0"):
         kept_point_flags(p, -np.ones((2, 3)), *args, 0.1)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 5000), f64=st.booleans(), hw=st.sampled_from([5.0, 1e3]))
+def test_point_masks_and_base_flags_are_the_numpy_expressions(seed, n, f64, hw):
+    """Finite and working-volume masks (NaN, ±inf, one bad coordinate, points at and beyond the volume's edge) and
+    the flags built from them with outliers: those of ``Scan.valid_mask``, ``volume_mask`` and the numpy OR-ing
+    ScanHandler.process did."""
+    rng = np.random.default_rng(seed)
+    p = rng.normal(0, 4, size=(n, 3)).astype(np.float64 if f64 else np.float32)
+    bad = rng.random((n, 3))
+    p[bad < 0.05] = np.nan
+    p[(bad >= 0.05) & (bad < 0.08)] = np.inf
+    p[(bad >= 0.08) & (bad < 0.1)] = -np.inf
+    p[(bad >= 0.1) & (bad < 0.12)] = hw  # on the edge: inside
+    finite, outside, n_valid = point_masks(p, hw)
+    want_f = Scan(points=p, settings=None, pose=None, scanner_id="").valid_mask()
+    want_o = volume_mask(p, hw)
+    np.testing.assert_array_equal(finite, want_f)
+    np.testing.assert_array_equal(outside, want_o)
+    assert n_valid == int(np.count_nonzero(want_f & ~want_o))
+    outlier = rng.choice(n, size=rng.integers(0, n + 1), replace=False)
+    want = np.zeros(n, np.uint16)
+    want[~want_f] |= fl.FLAG_INVALID_POINT
+    want[want_o] |= fl.FLAG_OUT_OF_VOLUME
+    want[outlier] |= fl.FLAG_OUTLIER
+    np.testing.assert_array_equal(base_flags(finite, outside, outlier), want)
+    with pytest.raises(ValueError, match="outlier index"):
+        base_flags(finite, outside, np.array([n]))

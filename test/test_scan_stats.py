@@ -86,3 +86,23 @@ def test_summary_of_a_judged_scan_equals_the_old_computation():
     again = handler.summarize(res.flags, pred[finite], q["points_valid"], False, False, q["points_received"],
                               U=None if U is None else U[finite & ~no_u], decisions=res.decisions[res.decisions != 255])
     assert again == q
+
+
+@pytest.mark.parametrize("kind", ["normal", "ties", "sorted", "reversed", "constant", "heavy_tail"])
+def test_sampled_bracket_percentile_is_the_full_selection(kind):
+    """Columns of 20,000 values and more find their percentile from a sample's bracket: numpy's value at every q,
+    with ties, a constant column, sorted input (a sample far off) and a heavy tail, at 1 and several threads."""
+    import numba
+
+    rng = np.random.default_rng(len(kind) + 3)
+    for n in (20_000, 20_001, 166_269):
+        if kind == "constant":
+            a = np.full(n, 0.0125)
+        elif kind == "heavy_tail":
+            a = np.abs(rng.standard_cauchy(n))
+        else:
+            a = np.abs(sample(rng, n, kind)[:, 0])
+        for q in (0.0, 0.01, 50.0, 95.0, 99.99, 100.0):
+            for t in sorted({1, numba.config.NUMBA_NUM_THREADS}):
+                got = float(st._percentile_sampled(a, q / 100, st.row_blocks(n, t)))
+                assert got == np.percentile(a, q), (n, q, t)

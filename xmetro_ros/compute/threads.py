@@ -21,12 +21,22 @@ iteration writes only its own outputs, in the serial code's float operations (te
 from __future__ import annotations
 
 import os
+import threading
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+
+# numba's OpenMP workers sleep when a parallel kernel ends instead of spinning for a while: the judge's stages
+# between kernels (ONNX runs, numpy blocks on helper threads) need those cores at once. On the 2-core machine the
+# organized judge at 2 threads took 70-76 ms with sleeping workers and 102-106 ms with spinning ones (1 thread:
+# 98-100 ms either way; bench/bench_scaling.py). Read by OpenMP when numba's layer starts, i.e. at the first
+# parallel kernel, after this import; a value set in the environment wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numba
 from numba.core import config as _numba_config
 
-__all__ = ["MAX_DEFAULT_THREADS", "available_cpus", "default_threads", "max_threads", "resolve_threads", "row_blocks",
-           "use_threads"]
+__all__ = ["MAX_DEFAULT_THREADS", "NUMPY_BLOCK_THREADS", "available_cpus", "block_bounds", "budget", "default_threads",
+           "max_threads", "parallel_for", "resolve_threads", "row_blocks", "use_threads"]
 
 #: The default budget's cap: beyond it the judge's stages stop gaining (docs/performance.md) and a shared cell PC
 #: keeps cores for its driver and DDS.
@@ -77,3 +87,82 @@ def resolve_threads(requested: int) -> int:
 def use_threads(n: int) -> None:
     """numba's parallel kernels launched from the calling thread use ``n`` threads (resolved: 0 = automatic)."""
     numba.set_num_threads(resolve_threads(n))
+
+
+def budget() -> int:
+    """The calling thread's thread budget: numba's count for it (:func:`use_threads` sets it; the judge calls it
+    first)."""
+    return int(numba.get_num_threads())
+
+
+_POOL: list[ThreadPoolExecutor] = []
+_POOL_LOCK = threading.Lock()
+_POOL_PREFIX = "xmetro-compute"
+
+
+def _pool() -> ThreadPoolExecutor:
+    """The process's helper threads for :func:`parallel_for`, made at first use (twice numba's pool: two judges,
+    the node's worker and a service, may run side by side)."""
+    with _POOL_LOCK:
+        if not _POOL:
+            _POOL.append(ThreadPoolExecutor(max(2, 2 * max_threads()), thread_name_prefix=_POOL_PREFIX))
+        return _POOL[0]
+
+
+def parallel_for(fn: Callable[[int], None], n: int, threads: int) -> None:
+    """``fn(i)`` for every ``i`` in ``range(n)``, on up to ``threads`` threads: the caller and helpers from a shared
+    pool, each taking the next ``i`` when it is done with one (load balance). Returns when every call has returned;
+    the first exception raised by a call is raised again here (the other calls still run).
+
+    For work that releases the GIL (ONNX Runtime runs, numpy on large blocks): each ``i`` must write only its own
+    outputs, so the result does not depend on ``threads``. Called from a helper thread (nested), or with one
+    thread or one item, it runs in the caller alone."""
+    threads = min(int(threads), n)
+    if threads <= 1 or threading.current_thread().name.startswith(_POOL_PREFIX):
+        for i in range(n):
+            fn(i)
+        return
+    it = iter(range(n))
+    lock = threading.Lock()
+    done = threading.Event()
+    state = {"finished": 0}
+    errors: list[BaseException] = []
+
+    def work() -> None:
+        while True:
+            with lock:
+                i = next(it, None)
+            if i is None:
+                return
+            try:
+                fn(i)
+            except BaseException as e:  # re-raised in the caller
+                errors.append(e)
+            with lock:
+                state["finished"] += 1
+                if state["finished"] == n:
+                    done.set()
+
+    pool = _pool()
+    for _ in range(threads - 1):
+        pool.submit(work)
+    work()  # the caller takes items too: it never waits on a helper that has not started
+    done.wait()
+    if errors:
+        raise errors[0]
+
+
+#: Threads at most for numpy work split into row blocks (the features): each block is many small numpy
+#: operations, each taking the GIL, and beyond 4 threads the blocks wait on it more than they gain (16 cores: the
+#: features took 5.3 ms at 4 threads, 6.6 at 8, 13.5 at 16; bench/results/scaling_16core.json).
+NUMPY_BLOCK_THREADS = 4
+
+
+def block_bounds(n: int, threads: int, min_block: int, per_thread: int = 1) -> list[tuple[int, int]]:
+    """Row ranges ``[lo, hi)`` covering ``range(n)`` for :func:`parallel_for`: ``per_thread`` per thread (more
+    balance the load when a thread can be held up; fewer cost fewer hand-offs), none smaller than ``min_block``
+    rows, at least one; one with one thread."""
+    if threads <= 1:
+        return [(0, n)]
+    k = max(1, min(per_thread * threads, n // max(1, min_block)))
+    return [(i * n // k, (i + 1) * n // k) for i in range(k)]

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from ..compute.threads import NUMPY_BLOCK_THREADS, block_bounds, budget, parallel_for
 from ..scan.geometry import HeadPose, camera_vector, point_geometry
 from ..scan.scanner import ScannerModel, ScanSettings
 
@@ -233,8 +234,8 @@ class FeatureContext:
         return replace(self, L=g.L, V=g.V, standoff=g.standoff, source_distance=g.source_distance, u=g.u, s=g.s,
                        camera_mm=camera, _cache={})
 
-    def subset(self, rows: np.ndarray) -> FeatureContext:
-        """The context restricted to ``rows`` (indices or boolean mask) of its points."""
+    def subset(self, rows: np.ndarray | slice) -> FeatureContext:
+        """The context restricted to ``rows`` (indices, boolean mask or a slice: views) of its points."""
         def cut(v: Any) -> Any:
             return None if v is None else v[rows]
 
@@ -359,8 +360,14 @@ def compute_features(
     dtype: type = np.float32,
     registry: FeatureRegistry | None = None,
     out: np.ndarray | None = None,
+    threads: int | None = None,
 ) -> np.ndarray:
     """Features ``names`` for every point of ``ctx``: (M, F) array of ``dtype`` (columns in the order of names).
+
+    ``threads``: row blocks computed side by side (default: the calling thread's budget,
+    ``compute.threads.budget``; at most ``NUMPY_BLOCK_THREADS``); every feature is an element-wise function of its
+    row, so the blocks give the same bits as one pass. The shared intermediates the blocks computed (N·L, N·V,
+    |N × L|) are joined into ``ctx``'s cache for the caller (the flags use them).
 
     Raises UnknownFeatureError (unknown name), MissingFieldError (a needed per-point field is absent; checked
     before computing anything) or FeatureError (a feature function returning the wrong shape)."""
@@ -372,13 +379,46 @@ def compute_features(
         for fld in f.fields:
             if fld not in ctx.fields:
                 raise MissingFieldError(fld, f.name, ctx.fields)
-    if any("normals" in f.inputs for f in feats):
-        ctx.cached("normals_checked", ctx.check_normals)
     m = len(ctx)
     if out is None:
         out = np.empty((m, len(feats)), dtype=dtype)
     elif out.shape != (m, len(feats)):
         raise FeatureError(f"out must have shape {(m, len(feats))}, got {out.shape}")
+    normals = any("normals" in f.inputs for f in feats)
+    threads = min(budget() if threads is None else int(threads), NUMPY_BLOCK_THREADS)
+    bounds = block_bounds(m, threads, _MIN_BLOCK_ROWS)
+    if len(bounds) == 1:
+        if normals:
+            ctx.cached("normals_checked", ctx.check_normals)
+        _fill(feats, ctx, out)
+        return out
+    subs = [ctx.subset(slice(lo, hi)) for lo, hi in bounds]
+
+    def block(i: int) -> None:
+        if normals:
+            subs[i].check_normals()
+        _fill(feats, subs[i], out[bounds[i][0] : bounds[i][1]])
+
+    try:
+        parallel_for(block, len(bounds), threads)
+    except FeatureError:
+        if normals:
+            ctx.check_normals()  # the message names the cloud's point, not a block's
+        raise
+    for key in subs[0]._cache:
+        parts = [sub._cache[key] for sub in subs if key in sub._cache]
+        if len(parts) == len(subs) and all(np.ndim(p) == 1 for p in parts):
+            ctx._cache.setdefault(key, np.concatenate(parts))
+    return out
+
+
+#: Rows per block of :func:`compute_features` at the least (smaller blocks cost more in hand-offs than they save).
+_MIN_BLOCK_ROWS = 8192
+
+
+def _fill(feats: list[Feature], ctx: FeatureContext, out: np.ndarray) -> None:
+    """Write each feature of ``ctx``'s rows into its column of ``out`` (M, F)."""
+    m = len(ctx)
     for j, f in enumerate(feats):
         v = f.func(ctx)
         if np.ndim(v) == 0:
@@ -387,4 +427,3 @@ def compute_features(
             out[:, j] = v
         else:
             raise FeatureError(f"feature {f.name!r} returned shape {np.shape(v)}, expected ({m},) or a scalar")
-    return out

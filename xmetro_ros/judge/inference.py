@@ -7,10 +7,10 @@ A model set directory holds ``card.json`` and one or more ONNX files; each file 
   ``card["partition_seed"]`` (see :func:`xmetro_ros.learn.pointnet.partition_sets` and ``card["global_feature"]``).
 How a cloud runs (``predict``, ``predict_with_sigma``, ``predict_with_uncertainty``, ``predict_batch``): the finite
 rows are gathered once, straight into set order (:func:`xmetro_ros.judge.pointsets.set_order`, cached by point count),
-ONNX Runtime is fed slices of that contiguous buffer (``set_chunk`` sets per run), both outputs of the spread head
-come from the same run, and the per-slot outputs are read back to point order in one pass (``set_kernels``): the
-same sets and bit for bit the same predictions as the gather/scatter implementation before it
-(test/test_inference_sets.py against test/reference_inference.py).
+ONNX Runtime is fed slices of that contiguous buffer (``set_chunk`` sets per run, the runs side by side on the model
+set's ``threads``), both outputs of the spread head come from the same run, and the per-slot outputs are read back to
+point order in one pass (``set_kernels``): the same sets and bit for bit the same predictions as the gather/scatter
+implementation before it (test/test_inference_sets.py against test/reference_inference.py).
 
 Features are the card's ``feature_names`` in order, in the units of ``feature_units`` (the study's: mm, deg, ms,
 per mm). Predictions are the systematic error nominal − measured, mm, in the scan frame's axes.
@@ -40,6 +40,7 @@ from typing import Any
 
 import numpy as np
 
+from ..compute.threads import block_bounds, parallel_for
 from ..scan.resources import default_model_dir
 from .conditions import interior_edges, multiplier_table, row_multipliers
 from .pointsets import set_order
@@ -56,8 +57,15 @@ __all__ = ["AXES", "CARD_FORMAT", "LEGACY_SCANNER_ID", "SIGMA_CAP_FACTOR", "Mode
 CARD_FORMAT = "xmetro-model-set/1"
 AXES = ("x", "y", "z")
 # Sets per ONNX Runtime run: 32-256 are equally fast, 512 and 1024 10-16 % slower (activations leave the cache);
-# any chunk gives the same bits (bench/bench_uncertainty.py measures and checks both).
+# any chunk gives the same bits (bench/bench_uncertainty.py measures and checks both; test_inference_sets.py).
 _SET_CHUNK = 128
+# With several threads, a cloud's sets are cut into this many chunks per thread, never more than _SET_CHUNK sets
+# each: on 16 cores 1 or 2 per thread ran the 3,326 sets of the 55 mm sphere in 7.1-7.6 ms, 4 in 8.7, 8 in 14.5
+# (bench/results/onnx_side_by_side_16core.json).
+_CHUNKS_PER_THREAD = 2
+# The domain distance's rows are split over the threads in blocks of at least this many (smaller ones cost more in
+# hand-offs than they save).
+_MIN_BLOCK_ROWS = 4096
 #: σ̂ is capped at this multiple of the largest σ̂ of the calibration clouds (card ``uncertainty.sigma_max_mm``).
 SIGMA_CAP_FACTOR = 2.0
 
@@ -69,7 +77,7 @@ _BLAS_LOCK = threading.Lock()
 @contextmanager
 def _one_blas_thread() -> Iterator[None]:
     """BLAS limited to one thread inside (threadpoolctl). The limit is process-wide and restored on exit: the lock
-    keeps two concurrent callers from restoring each other's limit (the product inside takes ~1 ms)."""
+    keeps two concurrent callers from restoring each other's limit (the products inside take ~1 ms)."""
     with _BLAS_LOCK:
         if not _BLAS:
             from threadpoolctl import ThreadpoolController
@@ -89,9 +97,10 @@ def update_card(model_dir: str | Path, **blocks: Any) -> None:
 
 
 def session_options(threads: int = 1) -> Any:
-    """ONNX Runtime session options of every model member: ``threads`` intra-op threads, one inter-op thread,
-    sequential execution, all graph optimisations, memory pattern and CPU arena on (ONNX Runtime's defaults; the
-    alternatives measured by bench/bench_uncertainty.py were no faster, see docs/performance.md)."""
+    """ONNX Runtime session options of a model member: ``threads`` intra-op threads, one inter-op thread, sequential
+    execution, all graph optimisations, memory pattern and CPU arena on (ONNX Runtime's defaults; the alternatives
+    measured by bench/bench_uncertainty.py were no faster, see docs/performance.md). PointNet members get one
+    intra-op thread: :class:`ModelSet` runs their chunks of sets side by side on its own threads instead."""
     import onnxruntime as ort
 
     opts = ort.SessionOptions()
@@ -122,6 +131,20 @@ class _Member:
     outputs: tuple[str, ...] = ()  # the error output first, then log_sigma when there is one
 
 
+def _run_chunk(m: _Member, want: tuple[str, ...], x: np.ndarray, y: np.ndarray) -> None:
+    """One ONNX run of a set member on the contiguous sets ``x`` (c, n, F), its outputs written into ``y`` (o, c, n,
+    3): through I/O binding (no copies) when the member covers x, y and z, else copied into its axes."""
+    if m.axes == (0, 1, 2):
+        io = m.session.io_binding()  # one per run: runs of the same session go side by side
+        io.bind_input("X", "cpu", 0, np.float32, x.shape, x.ctypes.data)
+        for o, name in enumerate(want):
+            io.bind_output(name, "cpu", 0, np.float32, (len(x), x.shape[1], 3), y[o].ctypes.data)
+        m.session.run_with_iobinding(io)
+        return
+    for o, r in enumerate(m.session.run(want, {"X": x})):
+        y[o][..., list(m.axes)] = r
+
+
 @dataclass
 class UncertainPrediction:
     """Predictions with their expanded uncertainty for the rows of one cloud (mm, scan frame axes).
@@ -144,9 +167,18 @@ class UncertainPrediction:
 
 
 class ModelSet:
-    """A loaded model set. ``predict`` is thread-safe (ONNX Runtime sessions are)."""
+    """A loaded model set. ``predict`` is thread-safe (ONNX Runtime sessions are).
 
-    def __init__(self, model_dir: Path, card: dict, members: list[_Member]) -> None:
+    ``threads``: how many ONNX runs go side by side. A PointNet member's sets are independent of each other, so its
+    chunks of sets run side by side on ``threads`` threads (``compute.threads.parallel_for``), each run on one ONNX
+    Runtime thread: no
+    synchronisation inside a run, where ONNX Runtime's intra-op threads split every small layer of a 6,400-point
+    chunk and stopped gaining beyond 4 threads (16 cores: 80 ms at 1 thread, 47 at 8 and at 16 for the 55 mm sphere's
+    166k points, bench/results/scaling_16core_before.json). A point-wise member runs once over all rows, on
+    ``threads`` intra-op threads. The chunks never change a result (each set's run is the same computation).
+    """
+
+    def __init__(self, model_dir: Path, card: dict, members: list[_Member], threads: int = 1) -> None:
         self.model_dir = model_dir
         self.card = card
         self.id: str = str(card["id"])
@@ -166,6 +198,7 @@ class ModelSet:
         self.domain: tuple[np.ndarray, np.ndarray] = (lo, hi)
         self.domain_margin = float(dom.get("margin", 0.05)) if dom else 0.0
         self.set_chunk = _SET_CHUNK
+        self.threads = max(1, int(threads))
         self._lock = threading.Lock()
         self._mv: tuple[np.ndarray, np.ndarray] | None = None
         # σ̂ ceiling per axis: SIGMA_CAP_FACTOR × the largest σ̂ of the calibration clouds (card
@@ -194,7 +227,7 @@ class ModelSet:
         cls._check_card(card, card_path)
         import onnxruntime as ort
 
-        opts = session_options(threads)
+        opts = {"points": session_options(threads), "sets": session_options(1)}  # sets: the pool's threads
         members: list[Any] = []
         covered: list[int] = []
         for m in card["models"]:
@@ -204,7 +237,7 @@ class ModelSet:
             if m.get("sha256") and hashlib.sha256(p.read_bytes()).hexdigest() != m["sha256"]:
                 raise ModelLoadError(f"model file {p} does not match the card's sha256 (modified or corrupt)")
             try:
-                sess = ort.InferenceSession(str(p), sess_options=opts, providers=["CPUExecutionProvider"])
+                sess = ort.InferenceSession(str(p), sess_options=opts[m["kind"]], providers=["CPUExecutionProvider"])
             except Exception as e:
                 raise ModelLoadError(f"ONNX Runtime cannot load {p}: {e}") from e
             shape = sess.get_inputs()[0].shape
@@ -221,7 +254,7 @@ class ModelSet:
         if sorted(covered) != [0, 1, 2]:
             raise ModelLoadError(f"{card_path}: the models must cover each of the axes x, y, z exactly once")
         _warm_kernels()  # compile or load the row kernels now, not on the first scan (once per process)
-        return cls(d, card, members)
+        return cls(d, card, members, threads=threads)
 
     @staticmethod
     def _check_card(card: Any, where: Path) -> None:
@@ -287,13 +320,23 @@ class ModelSet:
             w = np.asarray(dom["whiten"], np.float64) / float(dom["threshold"])
             self._mv = (w.astype(np.float32), (np.asarray(dom["mean"], np.float64) @ w).astype(np.float32))
         w, b = self._mv
-        # One BLAS thread: OpenBLAS splits this small (M, F) × (F, F) product over its threads, which on the shared
-        # 2-core machine (the node runs with OPENBLAS_NUM_THREADS=2) took 20-100 ms instead of ~1 ms; the result
-        # is the same bits (each output is the same dot product whatever the split; test_inference_sets.py).
+        X = np.asarray(X, np.float32)
+        out = np.empty(len(X), np.float32)
+        bounds = block_bounds(len(X), self.threads, _MIN_BLOCK_ROWS)
+
+        def block(i: int) -> None:
+            lo, hi = bounds[i]
+            z = X[lo:hi] @ w
+            z -= b
+            out[lo:hi] = np.sqrt(np.einsum("ij,ij->i", z, z))
+
+        # Row blocks side by side on the model set's threads, each product on one BLAS thread: OpenBLAS splits this
+        # small (M, F) × (F, F) product over its own threads, which on the shared 2-core machine (the node runs
+        # with OPENBLAS_NUM_THREADS=2) took 20-100 ms instead of ~1 ms. Each output is the same dot product
+        # whatever the split: the same bits (test_inference_sets.py).
         with _one_blas_thread():
-            z = np.asarray(X, np.float32) @ w
-        z -= b
-        return np.sqrt(np.einsum("ij,ij->i", z, z))
+            parallel_for(block, len(bounds), self.threads)
+        return out
 
     def out_of_domain_mv(self, X: np.ndarray, distance: np.ndarray | None = None, margin: float = 0.0) -> np.ndarray:
         """(M,) bool: outside the multivariate domain (distance > threshold × (1 + ``margin``), the node's
@@ -331,18 +374,18 @@ class ModelSet:
         m = len(X)
         rows = _finite_rows(X)  # None: every row finite
         p = m if rows is None else len(rows)
-        # every row is written when all are finite; NaN rows otherwise
-        out = np.empty((m, 6 if sigma else 3)) if rows is None else np.full((m, 6 if sigma else 3), np.nan)
+        # every row is written when all are finite; NaN rows otherwise. Errors and σ̂ in two contiguous arrays: the
+        # flags, the scatter and the statistics read them without a copy.
+        out = [np.empty((m, 3)) if rows is None else np.full((m, 3), np.nan) for _ in range(2 if sigma else 1)]
         if p == 0:
-            return out[:, :3], (out[:, 3:] if sigma else None)
+            return out[0], (out[1] if sigma else None)
         order, pos = set_order(p, self.set_size, self.partition_seed)
         flat = _to_sets(X, pos, order, rows)
-        y = self._run_sets(flat.reshape(-1, self.set_size, flat.shape[1]), sigma)
-        if sigma:
-            np.exp(y[1], out=y[1])  # numpy's float32 exp, as before (σ̂ = exp(log σ̂) in float32)
+        # σ̂ = numpy's float32 exp of log σ̂, as before, on the runs' threads
+        y = self._run_sets(flat.reshape(-1, self.set_size, flat.shape[1]), sigma, exp_sigma=True)
         for o in range(len(y)):
-            _from_sets(y[o].reshape(-1, 3), order, out[:, 3 * o : 3 * o + 3], rows)
-        return out[:, :3], (out[:, 3:] if sigma else None)
+            _from_sets(y[o].reshape(-1, 3), order, out[o], rows)
+        return out[0], (out[1] if sigma else None)
 
     def predict_batch(self, Xq: np.ndarray, output: str = "error") -> np.ndarray:
         """(Q, P, F) → (Q, P, 3): Q versions of the same P-point cloud, each predicted as ``predict`` would
@@ -373,8 +416,7 @@ class ModelSet:
             return err, unc
         order, pos = set_order(p, self.set_size, self.partition_seed)
         sets = _to_sets(Xq, pos, order).reshape(-1, self.set_size, f)
-        y = self._run_sets(sets, True)
-        np.exp(y[1], out=y[1])  # float32 exp, as predict_with_uncertainty
+        y = self._run_sets(sets, True, exp_sigma=True)  # float32 exp, as predict_with_uncertainty
         U, _ = self._expand(y[1].astype(np.float64).reshape(-1, 3), sets.reshape(-1, f))
         _from_sets(y[0].reshape(q, -1, 3), order, err)
         _from_sets(U.reshape(q, -1, 3), order, unc)
@@ -390,42 +432,56 @@ class ModelSet:
     def predict_sets_sigma(self, sets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(K, n, F) → (errors (K, n, 3), σ̂ (K, n, 3)) mm, as :meth:`predict_sets`; σ̂ = 1 on the axes of members
         without a spread output."""
-        y = self._run_sets(np.ascontiguousarray(sets, dtype=np.float32), True)
-        return y[0].astype(np.float64), np.exp(y[1]).astype(np.float64)
+        y = self._run_sets(np.ascontiguousarray(sets, dtype=np.float32), True, exp_sigma=True)
+        return y[0].astype(np.float64), y[1].astype(np.float64)
 
-    def _run_sets(self, sets: np.ndarray, sigma: bool) -> np.ndarray:
+    def _run_sets(self, sets: np.ndarray, sigma: bool, exp_sigma: bool = False) -> np.ndarray:
         """Contiguous float32 sets (K, n, F) → float32 (1, K, n, 3) errors, or with ``sigma`` (2, K, n, 3): errors
         and log σ̂ (log σ̂ = 0, σ̂ = 1, on the axes of members without a spread output), both outputs of the same ONNX
-        run. Every member's runs are fed slices of ``sets`` itself; a set member covering x, y, z writes its outputs
-        straight into the result (ONNX Runtime I/O binding: no copies); without ``sigma`` only the error output is
-        asked for."""
+        run; with ``exp_sigma`` σ̂ itself (numpy's float32 exp of the capped log σ̂). Every member's runs are fed
+        slices of ``sets`` itself; a set member covering x, y, z writes its outputs straight into the result (ONNX
+        Runtime I/O binding: no copies); without ``sigma`` only the error output is asked for."""
         if sets.dtype != np.float32 or not sets.flags.c_contiguous:
             raise ValueError("_run_sets needs C-contiguous float32 sets (the I/O binding reads the buffer)")
         k, n, f = sets.shape
         y = np.empty((2 if sigma else 1, k, n, 3), np.float32)
-        if sigma:
+        # One PointNet member covering x, y and z (the shipped kind): its runs write every output value, and each
+        # chunk's run caps and exponentiates its own log σ̂ right after, on its thread (element-wise: the same bits).
+        own = sigma and len(self.members) == 1 and self.members[0].kind == "sets"
+        if sigma and not own:
             y[1] = 0.0
+        chunk = self._chunk(k)
+        cap = self.log_sigma_max
+
+        def post(c: int) -> None:
+            ys = y[1, c * chunk : (c + 1) * chunk]
+            if cap is not None:
+                np.minimum(ys, cap, out=ys)  # NaN stays NaN (np.minimum propagates it)
+            if exp_sigma:
+                np.exp(ys, out=ys)
+
         for m in self.members:
             want = m.outputs if sigma and m.sigma else m.outputs[:1]
             if m.kind == "points":
                 y[0].reshape(k * n, 3)[:, m.axes[0]] = m.session.run(want, {"X": sets.reshape(k * n, f)})[0][:, 0]
                 continue
-            if m.axes == (0, 1, 2):
-                io = m.session.io_binding()
-                for i in range(0, k, self.set_chunk):
-                    x = sets[i : i + self.set_chunk]
-                    io.bind_input("X", "cpu", 0, np.float32, x.shape, x.ctypes.data)
-                    for o, name in enumerate(want):
-                        io.bind_output(name, "cpu", 0, np.float32, (len(x), n, 3), y[o, i : i + len(x)].ctypes.data)
-                    m.session.run_with_iobinding(io)
-                continue
-            for i in range(0, k, self.set_chunk):
-                res = m.session.run(want, {"X": sets[i : i + self.set_chunk]})
-                for o, r in enumerate(res):
-                    y[o, i : i + self.set_chunk][..., list(m.axes)] = r
-        if sigma and self.log_sigma_max is not None:
-            np.minimum(y[1], self.log_sigma_max, out=y[1])  # NaN stays NaN (np.minimum propagates it)
+
+            def one(c: int, m: _Member = m, want: tuple[str, ...] = want) -> None:
+                _run_chunk(m, want, sets[c * chunk : (c + 1) * chunk], y[:, c * chunk : (c + 1) * chunk])
+                if own:
+                    post(c)
+
+            parallel_for(one, -(-k // chunk), self.threads)
+        if sigma and not own:
+            for c in range(-(-k // chunk)):
+                post(c)
         return y
+
+    def _chunk(self, k: int) -> int:
+        """Sets per ONNX run for ``k`` sets: ``set_chunk``, or fewer when that leaves threads idle."""
+        if self.threads == 1:
+            return self.set_chunk
+        return max(1, min(self.set_chunk, -(-k // (_CHUNKS_PER_THREAD * self.threads))))
 
     def predict_with_sigma(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(errors (M, 3), σ̂ (M, 3)) mm for the rows of ONE cloud, with the set partition of :meth:`predict`

@@ -24,7 +24,7 @@ from numba import njit, prange
 from ..compute import threads as _threads  # noqa: F401 - the threading layer, before any parallel kernel runs
 from . import flags as fl
 
-__all__ = ["NO_DECISION", "kept_point_flags", "scatter_kept"]
+__all__ = ["NO_DECISION", "base_flags", "kept_point_flags", "point_masks", "scatter_kept"]
 
 NO_DECISION = 255  # decision class of a point without a finite prediction
 
@@ -36,6 +36,57 @@ _NOU, _NONCONF = np.uint16(fl.FLAG_NO_UNCERTAINTY), np.uint16(fl.FLAG_NON_CONFOR
 _UNDEC = np.uint16(fl.FLAG_UNDECIDED)
 _CONF_C, _NONCONF_C, _UNDEC_C = np.uint8(fl.CONFORMING), np.uint8(fl.NON_CONFORMING), np.uint8(fl.UNDECIDED)
 _NODEC = np.uint8(NO_DECISION)
+_OOV, _OUTLIER = np.uint16(fl.FLAG_OUT_OF_VOLUME), np.uint16(fl.FLAG_OUTLIER)
+
+
+@njit(**_PAR)
+def _point_masks(p, half_width, finite, outside):  # pragma: no cover - compiled
+    n_valid = 0
+    for i in prange(p.shape[0]):
+        x, y, z = p[i, 0], p[i, 1], p[i, 2]
+        f = np.isfinite(x) and np.isfinite(y) and np.isfinite(z)
+        # NaN compares False: a point with a NaN coordinate is outside only by a finite one beyond the volume
+        o = abs(x) > half_width or abs(y) > half_width or abs(z) > half_width
+        finite[i] = f
+        outside[i] = o
+        if f and not o:
+            n_valid += 1
+    return n_valid
+
+
+def point_masks(points: np.ndarray, half_width_mm: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """(finite (N,), outside (N,), valid count) of a scan's points (any shape ending in 3, mm), in one pass split
+    over the judge's threads: finite x, y and z (``Scan.valid_mask``); a coordinate beyond ±``half_width_mm`` (the
+    working volume, ``scan_handler.volume_mask``); finite and inside."""
+    p = np.asarray(points).reshape(-1, 3)
+    finite = np.empty(len(p), np.bool_)
+    outside = np.empty(len(p), np.bool_)
+    n = _point_masks(p, np.float64(half_width_mm), finite, outside)
+    return finite, outside, int(n)
+
+
+@njit(**_PAR)
+def _base_flags(finite, outside, outlier, flags):  # pragma: no cover - compiled
+    for i in prange(flags.shape[0]):
+        f = np.uint16(0)
+        if not finite[i]:
+            f |= _INVALID
+        if outside[i]:
+            f |= _OOV
+        flags[i] = f
+    for r in prange(outlier.shape[0]):  # distinct indices
+        flags[outlier[r]] |= _OUTLIER
+
+
+def base_flags(finite: np.ndarray, outside: np.ndarray, outlier: np.ndarray) -> np.ndarray:
+    """(N,) uint16 flags before the kept points' own: INVALID_POINT where ``finite`` is False, OUT_OF_VOLUME where
+    ``outside``, OUTLIER at the distinct flat indices ``outlier``."""
+    idx = np.ascontiguousarray(outlier, dtype=np.int64)
+    if len(idx) and (idx.min() < 0 or idx.max() >= len(finite)):
+        raise ValueError(f"outlier index outside the cloud's {len(finite)} points")
+    flags = np.empty(len(finite), np.uint16)
+    _base_flags(np.ascontiguousarray(finite, np.bool_), np.ascontiguousarray(outside, np.bool_), idx, flags)
+    return flags
 
 
 @njit(**_PAR)
@@ -133,6 +184,11 @@ def kept_point_flags(pred: np.ndarray, U: np.ndarray, cos_i: np.ndarray, cos_v: 
 
 @njit(**_PAR)
 def _scatter(idx, pred, U, kept_flags, cls, flags, dev, unc, decisions):  # pragma: no cover - compiled
+    for k in prange(flags.shape[0]):  # NaN / no decision where no kept point lands (numpy's full, split)
+        for j in range(3):
+            dev[k, j] = np.nan
+            unc[k, j] = np.nan
+        decisions[k] = NO_DECISION
     for r in prange(idx.shape[0]):
         k = idx[r]
         for j in range(3):
@@ -154,9 +210,9 @@ def scatter_kept(n: int, idx: np.ndarray, pred: np.ndarray, U: np.ndarray, kept_
     idx = np.ascontiguousarray(idx, dtype=np.int64)
     if len(idx) and (idx.min() < 0 or idx.max() >= n):
         raise ValueError(f"kept point index outside the cloud's {n} points")
-    dev = np.full((n, 3), np.nan)
-    unc = np.full((n, 3), np.nan)
-    decisions = np.full(n, NO_DECISION, dtype=np.uint8)
+    dev = np.empty((n, 3))
+    unc = np.empty((n, 3))
+    decisions = np.empty(n, dtype=np.uint8)
     _scatter(idx, np.ascontiguousarray(pred, dtype=np.float64), np.ascontiguousarray(U, dtype=np.float64),
              np.ascontiguousarray(kept_flags, dtype=np.uint16), np.ascontiguousarray(cls, dtype=np.uint8), flags, dev,
              unc, decisions)
@@ -173,3 +229,6 @@ def warm_up() -> None:
         kept_point_flags(p, p, np.ones(2, ct), np.ones(2, ct), 75.0, 75.0, np.zeros((2, 2), np.float32), np.zeros(2),
                          np.ones(2), 0.1, np.ones(2, np.float32), 0.5, 0.1, rule="simple")
     scatter_kept(3, np.arange(2), p, p, f, c, np.zeros(3, np.uint16))
+    for dt in (np.float32, np.float64):
+        fin, out, _ = point_masks(np.zeros((2, 3), dt), 1.0)
+    base_flags(fin, out, np.zeros(1, np.int64))

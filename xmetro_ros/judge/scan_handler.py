@@ -29,7 +29,7 @@ from ..scan.geometry import HeadPose, RowPoses
 from ..scan.scan import Scan
 from ..scan.scanner import ScannerModel, SettingsError
 from . import flags as fl
-from .point_flags import NO_DECISION, kept_point_flags, scatter_kept
+from .point_flags import NO_DECISION, base_flags, kept_point_flags, point_masks, scatter_kept
 
 __all__ = [
     "NO_DECISION",
@@ -72,12 +72,11 @@ def foreign_scan_reason(points: np.ndarray, pose: HeadPose | None, scanner: Scan
     stand-off) is assumed, as for defaulted settings."""
     from ..scan.geometry import point_geometry
 
-    p = np.asarray(points, dtype=np.float64)
-    if len(p) == 0:
+    if len(points) == 0:
         return ""
-    step = max(1, len(p) // FOREIGN_CHECK_POINTS)
+    p = np.asarray(np.asarray(points)[:: max(1, len(points) // FOREIGN_CHECK_POINTS)], dtype=np.float64)
     head = pose if pose is not None else HeadPose.looking_down(scanner.standoff_mm)
-    dist = np.asarray(point_geometry(p[::step], head, scanner.camera_mm).source_distance, dtype=np.float64)
+    dist = np.asarray(point_geometry(p, head, scanner.camera_mm).source_distance, dtype=np.float64)
     near, far = (float(v) for v in scanner.depth_of_field_mm)
     hi, lo = FOREIGN_RANGE_FACTOR * far, near / FOREIGN_RANGE_FACTOR
     out = (dist > hi) | (dist < lo)
@@ -103,12 +102,11 @@ def single_profile_reason(points: np.ndarray, pose: HeadPose | None, direction_d
     extent along the head's scan direction (head +Y of ``pose``; the study's looking-down pose without one) is below
     :data:`SINGLE_PROFILE_SPACINGS` profile spacings. Such points get normals from one line only, so they are judged
     but never better than RESCAN, and the message says why (issue 24: profiles are assembled first)."""
-    p = np.asarray(points, dtype=np.float64)
-    if len(p) < 2 or direction_density_per_mm <= 0:
+    if len(points) < 2 or direction_density_per_mm <= 0:
         return ""
-    step = max(1, len(p) // FOREIGN_CHECK_POINTS)
+    p = np.asarray(np.asarray(points)[:: max(1, len(points) // FOREIGN_CHECK_POINTS)], dtype=np.float64)
     head = pose if pose is not None else HeadPose.looking_down(standoff_mm)
-    along = p[::step] @ np.asarray(head.rotation, dtype=np.float64)[:, 1]
+    along = p @ np.asarray(head.rotation, dtype=np.float64)[:, 1]
     extent = float(along.max() - along.min())
     spacing = 1.0 / direction_density_per_mm
     if extent >= SINGLE_PROFILE_SPACINGS * spacing:
@@ -248,10 +246,15 @@ def warm_up() -> float:
     scan_stats.flag_tally(flags, fl.FLAG_BITS)
     scan_stats.abs_error_stats(np.ones((4, 3)), flags > 0)
     scan_stats.abs_error_stats(np.ones((4, 3)))
+    scan_stats.abs_error_stats(np.ones((scan_stats._SAMPLED_FROM, 3)))  # the sampled bracket of large columns
     from . import point_flags
 
     point_flags.warm_up()
-    from ..scan.geometry import point_geometry_posed
+    from ..scan.geometry import HeadPose, point_geometry, point_geometry_posed, rotation_xyz
+
+    for pose in (HeadPose(np.zeros(3), np.eye(3)), HeadPose(np.zeros(3), rotation_xyz(0.1, 0.0, 0.0))):
+        for dt in (np.float32, np.float64):
+            point_geometry(np.ones((1, 3)), pose, 10.0, dtype=dt)
 
     rp = RowPoses(np.zeros((1, 3)), np.eye(3)[None], np.zeros(1, np.int32))
     point_geometry_posed(np.ones((1, 3)), np.zeros(1, np.int64), rp, np.array([10.0, 0.0, 0.0]))
@@ -383,17 +386,16 @@ class ScanHandler:
         n = int(np.prod(scan.shape))
         if n == 0:
             raise ScanError("EMPTY_CLOUD", "the scan has no points")
-        finite_xyz = scan.valid_mask()
-        outside = volume_mask(scan.points, p.working_volume_mm)
-        if outside.any():
+        finite_xyz, outside, n_valid = point_masks(scan.points, p.working_volume_mm)
+        any_outside = bool(outside.any())
+        if any_outside:
             # Non-physical points are processed as no return (NaN), so no stage sees them (3e38 m would overflow).
             pts = np.array(scan.points, dtype=np.float64)
             pts.reshape(-1, 3)[outside] = np.nan
             scan = replace(scan, points=pts)
         valid = finite_xyz & ~outside
-        n_valid = int(valid.sum())
         if n_valid == 0:
-            if outside.any():
+            if any_outside:
                 raise ScanError("NO_VALID_POINTS", f"all {n} points are NaN/Inf or outside the working volume "
                                                    f"(|coordinate| > {p.working_volume_mm / 1e3:g} m)")
             raise ScanError("NO_VALID_POINTS", f"all {n} points are NaN/Inf")
@@ -403,10 +405,13 @@ class ScanHandler:
         if missing:
             raise ScanError("MISSING_INPUT_FIELD", f"the model needs per-point field(s) {', '.join(missing)} "
                                                    f"that the cloud lacks (has: {', '.join(sorted(scan.fields))})")
-        valid_pts = scan.points.reshape(-1, 3)[valid.reshape(-1)]
+        # The two checks below read every step-th valid point (FOREIGN_CHECK_POINTS of them): gather those alone
+        # (the same points the checks would pick from all valid ones).
+        vidx = np.flatnonzero(valid.reshape(-1))[:: max(1, n_valid // FOREIGN_CHECK_POINTS)]
+        valid_pts = scan.points.reshape(-1, 3)[vidx]
         posed = None
         if scan.row_poses is not None:
-            posed = (scan.row_poses.rows.reshape(-1)[valid.reshape(-1)], scan.row_poses)
+            posed = (scan.row_poses.rows.reshape(-1)[vidx], scan.row_poses)
         foreign = foreign_scan_reason(valid_pts, scan.pose, self.scanner, posed)
         if foreign:
             raise ScanError("NOT_A_LASER_SCAN", foreign)
@@ -445,10 +450,7 @@ class ScanHandler:
         check_deadline(deadline, "flags")
         finite = np.isfinite(pred[:, 0]) & np.isfinite(pred[:, 1]) & np.isfinite(pred[:, 2])
         idx = np.asarray(prepared.index, dtype=np.int64)
-        flags = np.zeros(n, dtype=np.uint16)
-        flags[~finite_xyz] |= fl.FLAG_INVALID_POINT
-        flags[outside] |= fl.FLAG_OUT_OF_VOLUME
-        flags[np.asarray(prepared.outlier, dtype=np.int64)] |= fl.FLAG_OUTLIER
+        flags = base_flags(finite_xyz, outside, prepared.outlier)
         lo, hi = model.domain
         # the multivariate domain complements the per-feature range check; the shape one (a surface the
         # calibration never covered: concave, sharp) does not widen U. N·L and N·V are the features' shared
@@ -464,7 +466,7 @@ class ScanHandler:
         dev, unc, decisions = scatter_kept(n, idx, pred, U, kept_flags, cls, flags)
 
         quality = self.summarize(flags, pred, n_valid, settings_defaulted, kept is not None, n, finite=finite,
-                                 U=U[finite & ~no_u], decisions=cls[finite], note=unc_note, model_id=model_id,
+                                 U=U, u_rows=finite & ~no_u, decisions=cls[finite], note=unc_note, model_id=model_id,
                                  rescan_reason=one_profile)
         return ScanResult(deviations=dev, flags=flags, quality=quality, prepared=prepared, features=X,
                           predictions=pred, context=ctx, scan=scan, kept=kept, uncertainty=unc, row_uncertainty=U,
@@ -539,12 +541,13 @@ class ScanHandler:
     def summarize(self, flags: np.ndarray, pred: np.ndarray, n_valid: int, settings_defaulted: bool,
                   decimated: bool, n_received: int, finite: np.ndarray | None = None, U: np.ndarray | None = None,
                   decisions: np.ndarray | None = None, note: str = "", model_id: str | None = None,
-                  rescan_reason: str = "") -> dict[str, Any]:
+                  rescan_reason: str = "", u_rows: np.ndarray | None = None) -> dict[str, Any]:
         """Quality summary (mm): counts, per-flag counts, mean / p95 |error| and U per axis, decision class counts,
         verdict and its reason.
 
         ``pred`` (M, 3) mm: the predictions the error statistics are over, only its rows ``finite`` (bool (M,))
-        when given; ``U`` (Q, 3): finite U of the predicted points that have one; ``decisions`` (P,): the class of
+        when given; ``U`` (Q, 3): finite U of the predicted points that have one, or with ``u_rows`` (bool (Q,))
+        those of its rows (the same figures, without gathering them first); ``decisions`` (P,): the class of
         each finite prediction; ``note``: added to the message (why there is no U); ``model_id``: the model set
         that judged (default: the primary's id); ``rescan_reason``: a reason the scan is RESCAN at best, whatever
         its flags say (a single profile: its normals are not those of a surface), first in the message. Compiled
@@ -570,7 +573,8 @@ class ScanHandler:
         mean, p95 = abs_error_stats(pred, finite, 95.0)
         Ua = np.empty((0, 3)) if U is None else np.asarray(U, dtype=np.float64)
         # U >= 0: the statistics of |U| are those of U (numpy's mean and linear percentile, by selection)
-        u_mean, u_p95 = abs_error_stats(Ua, None, 95.0) if len(Ua) else (np.full(3, np.nan), np.full(3, np.nan))
+        n_u = len(Ua) if u_rows is None else int(np.count_nonzero(u_rows))
+        u_mean, u_p95 = abs_error_stats(Ua, u_rows, 95.0) if n_u else (np.full(3, np.nan), np.full(3, np.nan))
         notes = [reason]
         if note:
             notes.append(note)

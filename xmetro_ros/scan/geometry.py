@@ -182,43 +182,36 @@ def point_geometry(points: np.ndarray, pose: HeadPose, camera_mm: float | Any,
         pose: head pose at scan start.
         camera_mm: camera position relative to the laser source in the head frame, mm (3 numbers), or a number:
             the baseline along head +Y (camera at the laser's height, the study's set-up).
-        dtype: float type of the outputs (float32 on the live hot path).
+        dtype: float type of the outputs (float32 on the live hot path); from a turned pose they are float64 (the
+            float64 rotation's products).
+
+    One compiled pass split over the calling thread's budget (``geometry_kernels``), in the float operations and
+    types of the numpy expressions before it: head coordinates p_h = R^T (p − position) (the offsets cast to
+    ``dtype``), the source on the point's head-Y line, the camera at ``camera_mm`` from it (moving with the source).
     """
+    from .geometry_kernels import single_pose_geometry_rotated, single_pose_geometry_straight
+
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
-    # Column-wise arithmetic on contiguous rows, no (N,3) @ (3,3) matmul: BLAS threading makes that 100x slower
-    # on a busy machine, and this runs on every live scan of up to ~200k points.
-    r = pose.rotation
-    d: np.ndarray = np.ascontiguousarray((pts - pose.position).T, dtype=dtype)  # (3, N)
+    pts = np.ascontiguousarray(pts) if pts.dtype in (np.float32, np.float64) else pts.astype(np.float64)
+    n = len(pts)
+    r = np.ascontiguousarray(pose.rotation, dtype=np.float64)
+    position = np.ascontiguousarray(pose.position, dtype=np.float64)
     identity = bool(np.array_equal(r, np.eye(3)))
+    dt = np.dtype(dtype) if identity else np.dtype(np.float64)
+    g = PointGeometry(L=np.empty((n, 3), dt), V=np.empty((n, 3), dt), source_distance=np.empty(n, dt),
+                      standoff=np.empty(n, dt), u=np.empty(n, dt), s=np.empty(n, dt))
+    cx, cy, cz = (float(c) for c in camera_vector(camera_mm))
+    common = cx == 0.0 and cz == 0.0
     if identity:
-        x, y, z = d
-    else:  # p_h = R^T (p - position): column j is sum_i d_i R[i, j]
-        x, y, z = (r[0, j] * d[0] + r[1, j] * d[1] + r[2, j] * d[2] for j in range(3))
-    xz2 = x * x + z * z
-    # Source lies on the head's Y axis at the point's head-Y coordinate: to_src = (0, y, 0) - p_h = (-x, 0, -z).
-    dist = np.sqrt(xz2)
-    inv_s = np.divide(1.0, dist, out=np.zeros_like(dist), where=dist > 0)
-    cx, cy, cz = camera_vector(camera_mm)
-    # The camera moves with the source: relative to the profile that lit the point it sits at (cx, cy, cz).
-    if cx == 0.0 and cz == 0.0:  # the common case: fewer passes over the data
-        tx, tz, dcam = -x, -z, np.sqrt(xz2 + cy * cy)
+        t = dt.type
+        single_pose_geometry_straight(pts, position, t(1.0), t(0.0), t(cx), t(cy), t(cz), t(cy * cy), common,
+                                      g.L, g.V, g.source_distance, g.standoff, g.u, g.s)
     else:
-        tx, tz = cx - x, cz - z
-        dcam = np.sqrt(tx * tx + tz * tz + cy * cy)
-    inv_c = np.divide(1.0, dcam, out=np.zeros_like(dcam), where=dcam > 0)
-    lh = (-x * inv_s, np.zeros_like(x), -z * inv_s)
-    vh = (tx * inv_c, cy * inv_c, tz * inv_c)
-    L = np.empty((len(x), 3), dtype=x.dtype)
-    V = np.empty((len(x), 3), dtype=x.dtype)
-    for k in range(3):  # head frame → scan frame: world_k = sum_j R[k, j] head_j
-        if identity:
-            L[:, k], V[:, k] = lh[k], vh[k]
-        else:
-            L[:, k] = r[k, 0] * lh[0] + r[k, 2] * lh[2]
-            V[:, k] = r[k, 0] * vh[0] + r[k, 1] * vh[1] + r[k, 2] * vh[2]
-    return PointGeometry(L=L, V=V, source_distance=dist, standoff=-z, u=x, s=y)
+        single_pose_geometry_rotated(pts, position, r, np.dtype(dtype) == np.float32, cx, cy, cz, common, g.L, g.V,
+                                     g.source_distance, g.standoff, g.u, g.s)
+    return g
 
 
 @dataclass(frozen=True)
