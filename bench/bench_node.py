@@ -23,6 +23,7 @@
    of 3 calls measured from the client (DDS round trip included).
 
     python bench/bench_node.py [--reps 9] [--duration 30] [--long] [--skip-dds] [--model DIR]
+                               [--threads N] [--dds-only] [--out FILE]
 """
 
 from __future__ import annotations
@@ -215,7 +216,7 @@ def _rss_mb(pid: int) -> float:
     return float("nan")
 
 
-def over_dds(duration: float, model_dir: str) -> dict:
+def over_dds(duration: float, model_dir: str, threads: int = 0) -> dict:
     from rclpy.node import Node
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import PointCloud2
@@ -226,7 +227,7 @@ def over_dds(duration: float, model_dir: str) -> dict:
     from xmetro_ros.srv import Explain, RecommendSettings
 
     proc = NodeProcess(params_file=str(ROOT / "config" / "xmetro.yaml"),
-                       params={"explain_max_points": 1000, "model_dir": model_dir})
+                       params={"explain_max_points": 1000, "model_dir": model_dir, "threads": threads})
     proc.start(timeout=120)
     res: dict = {}
     try:
@@ -281,6 +282,7 @@ def over_dds(duration: float, model_dir: str) -> dict:
         r = np.array([m for _, m in rss])
         q = max(1, len(r) // 4)
         res["stream"] = {
+            "node_threads": threads,
             "rate_hz": 2.0, "duration_s": duration, "scans_sent": len(sent), "deviations_received": len(lat),
             "drops": len(sent) - len(lat), "qos": "reliable",
             "latency_p50_ms": round(float(np.percentile(lat_ms, 50)), 1) if len(lat) else None,
@@ -366,6 +368,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--long", action="store_true", help="10-minute stream (memory steadiness)")
     ap.add_argument("--skip-dds", action="store_true")
     ap.add_argument("--model", default="", help="model set directory (default: the shipped default model)")
+    ap.add_argument("--threads", type=int, default=0,
+                    help="the node's thread budget for the DDS stream (default 0: its automatic default)")
+    ap.add_argument("--dds-only", action="store_true", help="only the DDS part (with --out: its own file)")
+    ap.add_argument("--out", default="", help="results file (default bench/results/node.json, node_long.json)")
     args = ap.parse_args(argv)
     from xmetro_ros.ros.dds_env import apply_ros_env
 
@@ -376,10 +382,13 @@ def main(argv: list[str] | None = None) -> int:
                         "unorganized_180k_median_ms": 400, "unorganized_ratio_to_open3d_normals": 1.0,
                         "stream_p99_ms": 250, "explain_s": 2.0,
                         "recommend_s": 3.0, "rss_mb": 500, "rss_growth_fraction": 0.05}}
-    result["in_process"] = in_process(args.reps, args.model)
+    if not args.dds_only:
+        result["in_process"] = in_process(args.reps, args.model)
     if not args.skip_dds:
-        result["dds"] = over_dds(600.0 if args.long else args.duration, args.model)
+        result["dds"] = over_dds(600.0 if args.long else args.duration, args.model, args.threads)
     out = OUT.with_name("node_long.json") if args.long else OUT  # the 10-minute run keeps its own file
+    if args.out:
+        out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2) + "\n")
     print(f"wrote {out}")

@@ -52,6 +52,19 @@ def test_a_loss_warns_with_its_fix_for_a_while():
     assert d.level() == 0
 
 
+def test_a_loss_shows_behind_a_worse_reason():
+    """A best-effort subscription that lost most scans and judged the one that got through on default settings:
+    ERROR for the settings, and the message goes on to the loss and its fix (what CI once saw: the loss hidden)."""
+    d = DiagnosticsState("judge", "scanner", "model")
+    d.on_received()
+    d.last_verdict, d.last_message = 1, "settings defaulted"
+    d.on_lost(5, dds_event=True)
+    msg = d.build(None).status[0].message
+    assert d.level() == 2
+    assert msg.index("no ScannerSettings ever arrived") < msg.index("lost in transport")
+    assert "config/fastdds_localhost.xml" in msg
+
+
 def _rel(sub) -> ReliabilityPolicy:
     return sub.qos_profile.reliability
 

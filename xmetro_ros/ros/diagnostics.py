@@ -3,7 +3,8 @@ conventions: one DiagnosticStatus named ``"<node name>: scan processing"`` (the 
 ``hardware_id`` = the scanner id, key/value pairs for the counters, published every ``diagnostics_period`` and at
 once when the level changes.
 
-Level (the most severe reason wins; the message lists the reasons, most severe first):
+Level (the most severe reason wins; the message lists every reason above OK, most severe first, up to 1,000
+characters):
 
 - ERROR: no usable model (degraded start); the worker is stalled (a scan past ``max_processing_time`` that did not
   come back, or an abandoned worker thread still running); the last scan could not be processed (ScanQuality
@@ -240,7 +241,9 @@ class DiagnosticsState:
             now = time.monotonic()
             reasons = sorted(self._reasons(now), key=lambda r: -r[0])
             lvl = reasons[0][0] if reasons else OK
-            shown = [r for lv, r in reasons if lv == lvl] if lvl > OK else [r for _, r in reasons[:1]]
+            # every reason above OK, the most severe first: a lesser one can be the cause of a worse (scans lost in
+            # transport behind "no ScannerSettings ever arrived" when the one that got through ran on defaults)
+            shown = [r for lv, r in reasons if lv > OK] if lvl > OK else [r for _, r in reasons[:1]]
             msg = "; ".join(dict.fromkeys(shown)) or self.last_message
             window = min(FREQUENCY_WINDOW_S, now - self._start)
             events = sum(1 for t in self._times if now - t <= FREQUENCY_WINDOW_S)
@@ -279,7 +282,7 @@ class DiagnosticsState:
                 "cad": self.cad_error or self.cad_state,
                 **self.profile_values,
             }
-        st = DiagnosticStatus(level=_level_value(lvl), name=self.name, message=msg[:500],
+        st = DiagnosticStatus(level=_level_value(lvl), name=self.name, message=msg[:1000],
                               hardware_id=self.hardware_id)
         st.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         arr = DiagnosticArray()
