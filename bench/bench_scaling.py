@@ -39,7 +39,15 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
 OUT = ROOT / "bench" / "results" / "scaling.json"
+
+# the machine's description and the median / p90 / min figures of the other thread benchmark (ROS-free imports;
+# bench_threads sets OMP_NUM_THREADS to every CPU before bench_node's default of 2)
+from bench_threads import _cpu_model  # noqa: E402
+from bench_threads import bn as _bench_node  # noqa: E402
+
+_ms = _bench_node._ms
 
 #: (module, attribute, stage name): the functions of ``ScanHandler.process`` that the stage profile times. Modules
 #: whose callers import the name inside a function (at call time) are patched where the name lives.
@@ -61,16 +69,6 @@ MODULE_STAGES = (
 )
 MODEL_STAGES = (("predict_with_uncertainty", "predict"), ("out_of_domain_mv", "domain"))
 HANDLER_STAGES = (("_shape_out_of_domain", "domain"), ("route", "route"), ("summarize", "summary"))
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 class StageTimer:
@@ -123,12 +121,6 @@ class StageTimer:
     def medians_ms(self) -> dict[str, float]:
         keys = sorted({k for s in self.scans for k in s}, key=lambda k: (k.split(".")[0], k))
         return {k: round(float(np.median([s.get(k, 0.0) for s in self.scans])) * 1e3, 1) for k in keys}
-
-
-def _ms(a: list[float]) -> dict[str, float]:
-    x = np.asarray(a, float) * 1e3
-    return {"median_ms": round(float(np.median(x)), 2), "p90_ms": round(float(np.percentile(x, 90)), 2),
-            "min_ms": round(float(x.min()), 2), "n": len(x)}
 
 
 def _cases() -> dict[str, Any]:

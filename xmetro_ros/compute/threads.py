@@ -1,13 +1,14 @@
-"""One thread budget for the judge: numba's parallel kernels and ONNX Runtime's intra-op threads share it.
+"""One thread budget for the judge: numba's parallel kernels, the model set's ONNX runs and the numpy row blocks
+(:func:`parallel_for`) share it.
 
-The judge's stages run one after the other (pre-processing and features in compiled kernels, then the ONNX call,
-then flags and outputs), so both libraries can use the same ``n`` threads without oversubscribing the machine. The
+The judge's stages run one after the other (pre-processing and features, then the ONNX runs, then flags and
+outputs), so they can all use the same ``n`` threads without oversubscribing the machine. The
 node's parameter ``threads`` sets it; 0 (the default) means :func:`default_threads`: the CPUs this process may run
 on (its affinity mask, which a container's or ``taskset``'s limit sets) less one, at least 1, at most
 :data:`MAX_DEFAULT_THREADS`. Why one less: a parallel kernel waits for its slowest thread, and a thread that shares
 its core with the driver, DDS or the node's executor stalls all of them. On the 2-core machine with two other busy
-processes the organized judge took 360-409 ms at 2 threads and 148-224 ms at 1 (quiet: 117 vs 120 ms,
-bench/bench_threads.py), so a 2-core machine judges on 1.
+processes the organized judge took 157-160 ms at 2 threads and 114-138 ms at 1 (bench/bench_threads.py, two runs),
+so a 2-core machine judges on 1.
 
 numba's thread count is per calling thread (``numba.set_num_threads``), so whatever thread judges calls
 :func:`use_threads` first (``ScanHandler.process`` does). The threading layer is numba's "threadsafe" choice (TBB,
@@ -45,7 +46,6 @@ MAX_DEFAULT_THREADS = 16
 if not os.environ.get("NUMBA_THREADING_LAYER"):
     # before any parallel kernel runs (the layer is chosen at the first launch)
     _numba_config.THREADING_LAYER = "threadsafe"  # type: ignore[attr-defined]
-
 
 
 @numba.njit(cache=True, nogil=True)

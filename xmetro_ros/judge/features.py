@@ -354,6 +354,10 @@ def required_fields(names: Sequence[str], registry: FeatureRegistry | None = Non
     return out
 
 
+#: Rows per block of :func:`compute_features` at the least (smaller blocks cost more in hand-offs than they save).
+_MIN_BLOCK_ROWS = 8192
+
+
 def compute_features(
     names: Sequence[str],
     ctx: FeatureContext,
@@ -410,10 +414,6 @@ def compute_features(
         if len(parts) == len(subs) and all(np.ndim(p) == 1 for p in parts):
             ctx._cache.setdefault(key, np.concatenate(parts))
     return out
-
-
-#: Rows per block of :func:`compute_features` at the least (smaller blocks cost more in hand-offs than they save).
-_MIN_BLOCK_ROWS = 8192
 
 
 def _fill(feats: list[Feature], ctx: FeatureContext, out: np.ndarray) -> None:

@@ -171,11 +171,11 @@ class ModelSet:
 
     ``threads``: how many ONNX runs go side by side. A PointNet member's sets are independent of each other, so its
     chunks of sets run side by side on ``threads`` threads (``compute.threads.parallel_for``), each run on one ONNX
-    Runtime thread: no
-    synchronisation inside a run, where ONNX Runtime's intra-op threads split every small layer of a 6,400-point
-    chunk and stopped gaining beyond 4 threads (16 cores: 80 ms at 1 thread, 47 at 8 and at 16 for the 55 mm sphere's
-    166k points, bench/results/scaling_16core_before.json). A point-wise member runs once over all rows, on
-    ``threads`` intra-op threads. The chunks never change a result (each set's run is the same computation).
+    Runtime thread: no synchronisation inside a run, where ONNX Runtime's intra-op threads split every small layer
+    of a 6,400-point chunk and stopped gaining beyond 4 threads (16 cores: 80 ms at 1 thread, 47 at 8 and at 16
+    for the 55 mm sphere's 166k points, bench/results/scaling_16core_before.json). A point-wise member runs once
+    over all rows, on ``threads`` intra-op threads. The chunks never change a result (each set's run is the same
+    computation).
     """
 
     def __init__(self, model_dir: Path, card: dict, members: list[_Member], threads: int = 1) -> None:
@@ -453,8 +453,7 @@ class ModelSet:
         chunk = self._chunk(k)
         cap = self.log_sigma_max
 
-        def post(c: int) -> None:
-            ys = y[1, c * chunk : (c + 1) * chunk]
+        def post(ys: np.ndarray) -> None:  # log σ̂ (rows of y[1]) capped, then σ̂ when asked
             if cap is not None:
                 np.minimum(ys, cap, out=ys)  # NaN stays NaN (np.minimum propagates it)
             if exp_sigma:
@@ -469,12 +468,11 @@ class ModelSet:
             def one(c: int, m: _Member = m, want: tuple[str, ...] = want) -> None:
                 _run_chunk(m, want, sets[c * chunk : (c + 1) * chunk], y[:, c * chunk : (c + 1) * chunk])
                 if own:
-                    post(c)
+                    post(y[1, c * chunk : (c + 1) * chunk])
 
             parallel_for(one, -(-k // chunk), self.threads)
         if sigma and not own:
-            for c in range(-(-k // chunk)):
-                post(c)
+            post(y[1])
         return y
 
     def _chunk(self, k: int) -> int:

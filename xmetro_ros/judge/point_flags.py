@@ -57,7 +57,7 @@ def _point_masks(p, half_width, finite, outside):  # pragma: no cover - compiled
 def point_masks(points: np.ndarray, half_width_mm: float) -> tuple[np.ndarray, np.ndarray, int]:
     """(finite (N,), outside (N,), valid count) of a scan's points (any shape ending in 3, mm), in one pass split
     over the judge's threads: finite x, y and z (``Scan.valid_mask``); a coordinate beyond ±``half_width_mm`` (the
-    working volume, ``scan_handler.volume_mask``); finite and inside."""
+    working volume; ±inf counts, NaN does not); finite and inside."""
     p = np.asarray(points).reshape(-1, 3)
     finite = np.empty(len(p), np.bool_)
     outside = np.empty(len(p), np.bool_)

@@ -41,7 +41,6 @@ __all__ = [
     "cap_points",
     "check_deadline",
     "decimation_index",
-    "volume_mask",
     "warm_up",
 ]
 
@@ -138,16 +137,6 @@ def check_deadline(deadline: float | None, stage: str) -> None:
         if now > deadline:
             raise ScanError("TIMEOUT", f"processing exceeded max_processing_time by {now - deadline:.3f} s "
                                        f"(abandoned before {stage})")
-
-
-def volume_mask(points: np.ndarray, half_width_mm: float) -> np.ndarray:
-    """Flat mask of finite points with every |coordinate| > ``half_width_mm`` (outside the working volume)."""
-    p = np.asarray(points).reshape(-1, 3)
-    with np.errstate(invalid="ignore"):
-        out = np.abs(p[:, 0]) > half_width_mm
-        out |= np.abs(p[:, 1]) > half_width_mm
-        out |= np.abs(p[:, 2]) > half_width_mm
-    return out
 
 
 @dataclass(frozen=True)
@@ -407,7 +396,7 @@ class ScanHandler:
                                                    f"that the cloud lacks (has: {', '.join(sorted(scan.fields))})")
         # The two checks below read every step-th valid point (FOREIGN_CHECK_POINTS of them): gather those alone
         # (the same points the checks would pick from all valid ones).
-        vidx = np.flatnonzero(valid.reshape(-1))[:: max(1, n_valid // FOREIGN_CHECK_POINTS)]
+        vidx = np.flatnonzero(valid)[:: max(1, n_valid // FOREIGN_CHECK_POINTS)]
         valid_pts = scan.points.reshape(-1, 3)[vidx]
         posed = None
         if scan.row_poses is not None:

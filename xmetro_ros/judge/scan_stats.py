@@ -99,23 +99,28 @@ def _select(a: np.ndarray, k: int) -> float:
 
 
 @njit(**_JIT)
+def _interpolate(a: np.ndarray, k: int, g: float) -> float:
+    """numpy's "linear" interpolation at fraction ``g`` between the k-th smallest value of ``a`` (reordered in
+    place) and the next one (k + 1 < a.size)."""
+    lo = _select(a, k)
+    hi = a[k + 1]
+    for i in range(k + 2, a.size):  # the next order statistic: the smallest right of k
+        if a[i] < hi:
+            hi = a[i]
+    d = hi - lo
+    if g >= 0.5:
+        return hi - d * (1 - g)
+    return lo + d * g
+
+
+@njit(**_JIT)
 def _percentile_linear(a: np.ndarray, q: float) -> float:
     """numpy's default ("linear") percentile of the finite, non-empty ``a`` (reordered in place), q in [0, 1]."""
     n = a.size
     v = (n - 1) * q
     if v >= n - 1:
         return _select(a, n - 1)
-    k = int(np.floor(v))
-    lo = _select(a, k)
-    hi = a[k + 1]
-    for i in range(k + 2, n):  # the next order statistic: the smallest right of k
-        if a[i] < hi:
-            hi = a[i]
-    g = v - np.floor(v)
-    d = hi - lo
-    if g >= 0.5:
-        return hi - d * (1 - g)
-    return lo + d * g
+    return _interpolate(a, int(np.floor(v)), v - np.floor(v))
 
 
 def percentile_linear(a: np.ndarray, q: float) -> float:
@@ -184,18 +189,9 @@ def _percentile_sampled(a: np.ndarray, q: float, blocks: int) -> float:
         start[b] = start[b - 1] + inside[b - 1]
     mid = np.empty(ni)
     _gather_range(a, lo, hi, blocks, start, mid)
-    lo_v = _select(mid, k - nb)
     if v >= n - 1:
-        return lo_v
-    hi_v = mid[k - nb + 1]
-    for i in range(k - nb + 2, ni):  # the next order statistic: the smallest right of k
-        if mid[i] < hi_v:
-            hi_v = mid[i]
-    g = v - np.floor(v)
-    d = hi_v - lo_v
-    if g >= 0.5:
-        return hi_v - d * (1 - g)
-    return lo_v + d * g
+        return _select(mid, k - nb)
+    return _interpolate(mid, k - nb, v - np.floor(v))
 
 
 #: Values per column from which the percentile is found by the sampled bracket rather than a full selection.

@@ -53,6 +53,26 @@ def posed_geometry(points: np.ndarray, pose_index: np.ndarray, positions: np.nda
                     + (points[n, 2] - s_origin[2]) * s_axis[2])
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def _source_and_camera(x: Any, z: Any, one: Any, zero: Any, cx: Any, cz: Any, cy2: Any, common: bool
+                       ) -> tuple[Any, Any, Any, Any, Any]:  # pragma: no cover - compiled
+    """From head coordinates x, z of a point (in the float type of ``one``): (source distance, its inverse (0 at
+    the source), the camera offsets tx, tz, the inverse camera distance); ``cy2`` = cy², ``common``: cx = cz = 0."""
+    xz2 = x * x + z * z
+    dist = np.sqrt(xz2)
+    inv_s = one / dist if dist > zero else zero
+    if common:
+        tx = -x
+        tz = -z
+        dcam = np.sqrt(xz2 + cy2)
+    else:
+        tx = cx - x
+        tz = cz - z
+        dcam = np.sqrt(tx * tx + tz * tz + cy2)
+    inv_c = one / dcam if dcam > zero else zero
+    return dist, inv_s, tx, tz, inv_c
+
+
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True)
 def single_pose_geometry_straight(points: np.ndarray, position: np.ndarray, one: Any, zero: Any, cxf: Any, cyf: Any,
                                   czf: Any, cy2: Any, common: bool, L: np.ndarray, V: np.ndarray, dist_out: np.ndarray,
@@ -67,19 +87,7 @@ def single_pose_geometry_straight(points: np.ndarray, position: np.ndarray, one:
         standoff[i] = points[i, 2] - p2
         x = u[i]
         z = standoff[i]
-        xz2 = x * x + z * z
-        dist = np.sqrt(xz2)
-        dist_out[i] = dist
-        inv_s = one / dist if dist > zero else zero
-        if common:
-            tx = -x
-            tz = -z
-            dcam = np.sqrt(xz2 + cy2)
-        else:
-            tx = cxf - x
-            tz = czf - z
-            dcam = np.sqrt(tx * tx + tz * tz + cy2)
-        inv_c = one / dcam if dcam > zero else zero
+        dist_out[i], inv_s, tx, tz, inv_c = _source_and_camera(x, z, one, zero, cxf, czf, cy2, common)
         L[i, 0] = -x * inv_s
         L[i, 1] = zero
         L[i, 2] = -z * inv_s
@@ -97,6 +105,7 @@ def single_pose_geometry_rotated(points: np.ndarray, position: np.ndarray, r: np
     the points' offsets); ``round32``: the offsets are first rounded to float32 (the float32 hot path's cast)."""
     p0, p1, p2 = position[0], position[1], position[2]
     cy2 = cy * cy
+    one, zero = 1.0, 0.0
     for i in prange(points.shape[0]):
         d0 = points[i, 0] - p0
         d1 = points[i, 1] - p1
@@ -108,18 +117,7 @@ def single_pose_geometry_rotated(points: np.ndarray, position: np.ndarray, r: np
         x = r[0, 0] * d0 + r[1, 0] * d1 + r[2, 0] * d2
         y = r[0, 1] * d0 + r[1, 1] * d1 + r[2, 1] * d2
         z = r[0, 2] * d0 + r[1, 2] * d1 + r[2, 2] * d2
-        xz2 = x * x + z * z
-        dist = np.sqrt(xz2)
-        inv_s = 1.0 / dist if dist > 0.0 else 0.0
-        if common:
-            tx = -x
-            tz = -z
-            dcam = np.sqrt(xz2 + cy2)
-        else:
-            tx = cx - x
-            tz = cz - z
-            dcam = np.sqrt(tx * tx + tz * tz + cy2)
-        inv_c = 1.0 / dcam if dcam > 0.0 else 0.0
+        dist, inv_s, tx, tz, inv_c = _source_and_camera(x, z, one, zero, cx, cz, cy2, common)
         lh0 = -x * inv_s
         lh2 = -z * inv_s
         vh0 = tx * inv_c
