@@ -47,9 +47,9 @@ def _goal(q: ScanQuality, **kw) -> RecommendAction.Goal:
     return g
 
 
-def _run_goal(ac: ActionClient, goal, cancel_after: int | None = None):
-    """Send ``goal``; return (status, result, feedbacks). ``cancel_after``: request a cancel after that many
-    feedback messages."""
+def _run_goal(client_node: Node, ac: ActionClient, goal, cancel_after: int | None = None):
+    """Send ``goal`` from ``ac`` (of ``client_node``, spun by a single-threaded executor in another thread); return
+    (status, result, feedbacks). ``cancel_after``: request a cancel after that many feedback messages."""
     feedback: list = []
     done = threading.Event()
     out: dict = {}
@@ -73,7 +73,18 @@ def _run_goal(ac: ActionClient, goal, cancel_after: int | None = None):
         h.get_result_async().add_done_callback(on_result)
 
     assert ac.wait_for_server(timeout_sec=TIMEOUT)
-    ac.send_goal_async(goal, feedback_callback=on_feedback).add_done_callback(on_accept)
+
+    def send() -> None:
+        ac.send_goal_async(goal, feedback_callback=on_feedback).add_done_callback(on_accept)
+
+    # Sent from the client node's own (single-threaded) executor, not this thread: rclpy 9.1.2's send_goal_async
+    # registers the goal's future under its lock, then registers a second one and returns that. When the spinning
+    # thread takes the server's acceptance in between, it completes the first and the returned future never
+    # completes (CI on a loaded machine: all three tests here waited 120 s for a result, the server having logged
+    # nothing wrong). On the executor's thread the acceptance cannot be taken before send_goal_async returns.
+    executor = client_node.executor
+    assert executor is not None
+    executor.create_task(send)
     assert done.wait(TIMEOUT * 4), "no action result"
     return out.get("status"), out.get("result"), feedback
 
@@ -85,7 +96,7 @@ def test_action_matches_service_and_sends_feedback(rig):
                        timeout=TIMEOUT * 4)
     assert srv.success, srv.message
     ac = ActionClient(tester, RecommendAction, f"/{NAME}/recommend_settings")
-    status, res, fb = _run_goal(ac, _goal(q))
+    status, res, fb = _run_goal(tester, ac, _goal(q))
     assert status == GoalStatus.STATUS_SUCCEEDED, res.message
     assert res.success
     # the same search, the same best candidate
@@ -115,7 +126,7 @@ def test_action_cancel_stops_the_search(rig):
                          Parameter("recommend_max_seconds", value=600.0)])
     try:
         ac = ActionClient(tester, RecommendAction, f"/{NAME}/recommend_settings")
-        status, res, fb = _run_goal(ac, _goal(q), cancel_after=1)
+        status, res, fb = _run_goal(tester, ac, _goal(q), cancel_after=1)
         assert status == GoalStatus.STATUS_CANCELED, (status, res.message)
         assert not res.success and "cancelled after" in res.message
         total = fb[0].orientations_total
@@ -133,5 +144,5 @@ def test_action_refused_request_aborts(rig):
     ac = ActionClient(tester, RecommendAction, f"/{NAME}/recommend_settings")
     g = RecommendAction.Goal()
     g.scan_stamp.sec = 12345  # no such judged scan
-    status, res, _fb = _run_goal(ac, g)
+    status, res, _fb = _run_goal(tester, ac, g)
     assert status == GoalStatus.STATUS_ABORTED and not res.success and res.message
