@@ -22,9 +22,9 @@ def _numpy(pred, U, cos_i, cos_v, gi, gv, X, lo, hi, margin, nq, nq_min, tol, ru
     kf = fl.angle_flags(np.zeros_like(pred), pred, pred, gi, gv, cos_i=cos_i, cos_v=cos_v)
     kf |= fl.domain_flags(X, lo, hi, margin)
     if mv is not None:
-        kf[mv] |= fl.FLAG_OUT_OF_DOMAIN
+        kf[mv] |= fl.FLAG_OUT_OF_DOMAIN | fl.FLAG_DOMAIN_MULTIVARIATE
     if shape is not None:
-        kf[shape] |= fl.FLAG_OUT_OF_DOMAIN
+        kf[shape] |= fl.FLAG_OUT_OF_DOMAIN | fl.FLAG_DOMAIN_SHAPE
     kf[np.asarray(nq) < nq_min] |= fl.FLAG_UNRELIABLE_NORMAL
     dnorm = np.sqrt(np.einsum("ij,ij->i", pred, pred))
     kf[dnorm > tol] |= fl.FLAG_OVER_TOLERANCE
@@ -82,6 +82,23 @@ def test_compiled_flags_are_the_numpy_composition(seed, m, f, rule, cos64, with_
     exp_f, exp_c = _numpy(pred, U, cos_i, cos_v, 75.0, 70.0, X, lo, hi, 0.1, nq, 0.3, 0.1, rule, mv_, shape_)
     np.testing.assert_array_equal(got_c, exp_c)
     np.testing.assert_array_equal(got_f, exp_f)
+
+
+def test_each_out_of_domain_reason_sets_its_own_bit_with_out_of_domain():
+    # four points: in domain; a feature beyond its widened range; multivariate only; shape only; then all three
+    X = np.array([[0.0], [3.0], [0.0], [0.0], [3.0]], np.float32)
+    mv = np.array([False, False, True, False, True])
+    shape = np.array([False, False, False, True, True])
+    d = np.full((5, 3), 0.001)
+    got, _ = kept_point_flags(d, d, np.ones(5), np.ones(5), 75.0, 70.0, X, np.array([-1.0]), np.array([1.0]), 0.05,
+                              np.ones(5, np.float32), 0.3, 0.1, mv_ood=mv, shape_ood=shape)
+    dom = got & (fl.FLAG_OUT_OF_DOMAIN | fl.DOMAIN_REASON_BITS)
+    ood = fl.FLAG_OUT_OF_DOMAIN
+    assert list(dom) == [0, ood | fl.FLAG_DOMAIN_FEATURES, ood | fl.FLAG_DOMAIN_MULTIVARIATE,
+                         ood | fl.FLAG_DOMAIN_SHAPE, ood | fl.DOMAIN_REASON_BITS]
+    # the reasons are detail bits: OUT_OF_DOMAIN alone makes a point unfit, and counts it once
+    assert not fl.QUALITY_BITS & fl.DOMAIN_REASON_BITS
+    assert fl.domain_flags(X, np.array([-1.0]), np.array([1.0]), 0.05)[1] == ood | fl.FLAG_DOMAIN_FEATURES
 
 
 def test_scatter_puts_the_kept_points_in_cloud_order_and_flags_silent_nans():

@@ -81,10 +81,54 @@ def test_flag_thresholds_follow_parameters(handler, scan):
         handler.params = base
 
 
+def test_out_of_domain_says_which_check_and_only_the_multivariate_one_widens_u(handler):
+    # A narrowed margin (negative: inside the training range) so that each of the three checks flags points; the
+    # settings in the middle of the training range (6 / 3 lie on its edge).
+    scan = simulate_scan(Sphere(17.5, np.zeros(3)), ScanSettings(10.0, 4.0, 0.5), seed=2)
+    base = handler.params
+    try:
+        handler.params = replace(base, domain_margin=-0.1)
+        r = handler.process(scan)
+    finally:
+        handler.params = base
+    model = handler.model
+    assert r.model_id == model.id
+    kf = r.flags[r.prepared.index]
+    bit = {b: (kf & b) > 0 for b in (fl.FLAG_OUT_OF_DOMAIN, fl.FLAG_DOMAIN_FEATURES, fl.FLAG_DOMAIN_MULTIVARIATE,
+                                     fl.FLAG_DOMAIN_SHAPE)}
+    # each reason bit is its own check, recomputed here
+    feat = (fl.domain_flags(r.features, *model.domain, -0.1) & fl.FLAG_DOMAIN_FEATURES) > 0
+    dist = model.domain_distance(r.features)
+    np.testing.assert_array_equal(bit[fl.FLAG_DOMAIN_FEATURES], feat)
+    np.testing.assert_array_equal(bit[fl.FLAG_DOMAIN_MULTIVARIATE], model.out_of_domain_mv(r.features, dist, -0.1))
+    np.testing.assert_array_equal(bit[fl.FLAG_DOMAIN_SHAPE], r.shape_out_of_domain)
+    # OUT_OF_DOMAIN is set exactly where some reason is, and every reason occurs here
+    reasons = bit[fl.FLAG_DOMAIN_FEATURES] | bit[fl.FLAG_DOMAIN_MULTIVARIATE] | bit[fl.FLAG_DOMAIN_SHAPE]
+    np.testing.assert_array_equal(bit[fl.FLAG_OUT_OF_DOMAIN], reasons)
+    for b in (fl.FLAG_DOMAIN_FEATURES, fl.FLAG_DOMAIN_MULTIVARIATE, fl.FLAG_DOMAIN_SHAPE):
+        assert 0 < bit[b].sum() < len(kf), fl.FLAG_NAMES[fl.FLAG_BITS.index(b)]
+    # What each does to U: the published U is the unwidened one × max(1, distance). The multivariate bit is
+    # distance > 1 + margin (checked above), so with a margin >= 0 its points are widened; a point flagged for its
+    # features or its shape alone may lie at a distance <= 1 and then keeps its U.
+    _err, sig = model.predict_with_sigma(r.features)
+    model.domain_distance = lambda X: np.full(len(X), np.nan)  # NaN distance: no widening (this instance only)
+    try:
+        U0, _ = model._expand(sig, r.features)
+    finally:
+        del model.domain_distance
+    far = dist > 1.0
+    np.testing.assert_allclose(r.row_uncertainty[far], U0[far] * dist[far, None], rtol=1e-9)
+    np.testing.assert_array_equal(r.row_uncertainty[~far], U0[~far])
+    assert (bit[fl.FLAG_DOMAIN_SHAPE] & ~far).any() and (bit[fl.FLAG_DOMAIN_FEATURES] & ~far).any()
+    q = r.quality["flag_counts"]
+    assert q[fl.FLAG_BITS.index(fl.FLAG_DOMAIN_SHAPE)] == int(bit[fl.FLAG_DOMAIN_SHAPE].sum())
+
+
 def test_domain_and_angle_flags_unit():
     X = np.array([[0.0, 1.0], [2.0, 1.0], [0.5, -0.2]], np.float32)
     f = fl.domain_flags(X, np.array([0.0, 0.0]), np.array([1.0, 1.0]), margin=0.1)
-    assert f.tolist() == [0, fl.FLAG_OUT_OF_DOMAIN, fl.FLAG_OUT_OF_DOMAIN]
+    ood = fl.FLAG_OUT_OF_DOMAIN | fl.FLAG_DOMAIN_FEATURES
+    assert f.tolist() == [0, ood, ood]
     n = np.array([[0, 0, 1.0], [0, 0, 1.0], [1.0, 0, 0]])
     lv = np.array([[0, 0, 1.0], [np.sin(np.radians(80)), 0, np.cos(np.radians(80))], [0, 0, 1.0]])
     a = fl.angle_flags(n, lv, lv, 75.0, 85.0)

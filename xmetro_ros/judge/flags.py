@@ -9,10 +9,9 @@ bit   name                   set when
 2     grazing_incidence      incidence angle acos(N·L) > ``grazing_incidence_deg`` (N·L <= 0: not lit at all)
 4     grazing_view           view angle acos(N·V) > ``grazing_view_deg`` (N·V <= 0: not seen at all)
 8     over_tolerance         predicted |error| (norm over x, y, z) > ``tolerance``
-16    out_of_domain          a model feature lies outside the model's training range widened by
-                             ``domain_margin`` × the range width on each side (ModelSet.domain), or (set by
-                             ScanHandler with a card ``domain_mv``) the multivariate domain distance exceeds
-                             1 + ``domain_margin`` (in units of its threshold)
+16    out_of_domain          the point lies outside the model's domain for at least one reason, each with its own
+                             bit below: domain_features, domain_multivariate, domain_shape (the reasons differ in
+                             what they do to U)
 32    unreliable_normal      normal quality < ``normal_quality_min`` (quality from the normal estimation, 0..1)
 64    invalid_point          x, y or z NaN / Inf (no return) — no prediction for it; also any point whose
                              prediction is not finite for another reason (a point has a finite prediction or a flag)
@@ -24,6 +23,15 @@ bit   name                   set when
                              predicted point without a finite U
 1024  no_uncertainty         a predicted point without a finite U: the model set has no calibration (every point),
                              or the model gave no spread for it
+2048  domain_features        why out_of_domain is set (with it): a feature outside its training range widened by
+                             ``domain_margin`` × the range width (ModelSet.domain). U is not widened for this
+                             reason (only where the point is also domain_multivariate)
+4096  domain_multivariate    why out_of_domain is set (with it): the multivariate domain distance (card
+                             ``domain_mv``) exceeds 1 + ``domain_margin``. U is widened: multiplied by the distance
+8192  domain_shape           why out_of_domain is set (with it): the surface's mean curvature lies outside the
+                             calibration shapes (card ``domain_shape``) widened by ``domain_margin`` × range, e.g. a
+                             concave pocket or a sharp edge; organized scans only. U is not widened: the interval is
+                             not vouched for
 ====  =====================  =====================================================================================
 
 Decision classes (:func:`point_decisions`): per predicted point, on the norm |d| of the predicted error with
@@ -59,7 +67,11 @@ __all__ = [
     "CONFORMING",
     "DECISION_NAMES",
     "DECISION_RULES",
+    "DOMAIN_REASON_BITS",
     "FLAG_BITS",
+    "FLAG_DOMAIN_FEATURES",
+    "FLAG_DOMAIN_MULTIVARIATE",
+    "FLAG_DOMAIN_SHAPE",
     "FLAG_GRAZING_INCIDENCE",
     "FLAG_GRAZING_VIEW",
     "FLAG_INVALID_POINT",
@@ -101,12 +113,19 @@ FLAG_OUT_OF_VOLUME = 128
 FLAG_NON_CONFORMING = 256
 FLAG_UNDECIDED = 512
 FLAG_NO_UNCERTAINTY = 1024
+# The reasons for OUT_OF_DOMAIN, each set together with it (detail bits, not quality bits: OUT_OF_DOMAIN counts once)
+FLAG_DOMAIN_FEATURES = 2048
+FLAG_DOMAIN_MULTIVARIATE = 4096
+FLAG_DOMAIN_SHAPE = 8192
 
 FLAG_BITS = (FLAG_OUTLIER, FLAG_GRAZING_INCIDENCE, FLAG_GRAZING_VIEW, FLAG_OVER_TOLERANCE, FLAG_OUT_OF_DOMAIN,
              FLAG_UNRELIABLE_NORMAL, FLAG_INVALID_POINT, FLAG_OUT_OF_VOLUME, FLAG_NON_CONFORMING, FLAG_UNDECIDED,
-             FLAG_NO_UNCERTAINTY)
+             FLAG_NO_UNCERTAINTY, FLAG_DOMAIN_FEATURES, FLAG_DOMAIN_MULTIVARIATE, FLAG_DOMAIN_SHAPE)
 FLAG_NAMES = ("outlier", "grazing_incidence", "grazing_view", "over_tolerance", "out_of_domain",
-              "unreliable_normal", "invalid_point", "out_of_volume", "non_conforming", "undecided", "no_uncertainty")
+              "unreliable_normal", "invalid_point", "out_of_volume", "non_conforming", "undecided", "no_uncertainty",
+              "domain_features", "domain_multivariate", "domain_shape")
+#: The reason bits of OUT_OF_DOMAIN.
+DOMAIN_REASON_BITS = FLAG_DOMAIN_FEATURES | FLAG_DOMAIN_MULTIVARIATE | FLAG_DOMAIN_SHAPE
 #: Bits that make a point unfit ("flagged", not "usable" in the verdict); the decision bits are not among them.
 QUALITY_BITS = (FLAG_OUTLIER | FLAG_GRAZING_INCIDENCE | FLAG_GRAZING_VIEW | FLAG_OVER_TOLERANCE | FLAG_OUT_OF_DOMAIN
                 | FLAG_UNRELIABLE_NORMAL | FLAG_INVALID_POINT | FLAG_OUT_OF_VOLUME)
@@ -163,7 +182,8 @@ def angle_flags(normals: np.ndarray, L: np.ndarray, V: np.ndarray, grazing_incid
 
 
 def domain_flags(X: np.ndarray, lo: np.ndarray, hi: np.ndarray, margin: float) -> np.ndarray:
-    """OUT_OF_DOMAIN bit for rows of ``X`` (M, F) outside [lo − m·(hi−lo), hi + m·(hi−lo)] in any feature."""
+    """OUT_OF_DOMAIN and DOMAIN_FEATURES bits for rows of ``X`` (M, F) outside [lo − m·(hi−lo), hi + m·(hi−lo)] in
+    any feature."""
     lo = np.asarray(lo, dtype=np.float64)
     hi = np.asarray(hi, dtype=np.float64)
     w = (hi - lo) * float(margin)
@@ -174,9 +194,9 @@ def domain_flags(X: np.ndarray, lo: np.ndarray, hi: np.ndarray, margin: float) -
     out = np.zeros(len(X), dtype=np.uint16)
     if 0 < m.shape[1] < 256:
         # "any over the row" as a uint8 matrix-vector product: ~2x faster than any(axis=1) on few columns
-        out[(m.view(np.uint8) @ np.ones(m.shape[1], np.uint8)) > 0] = FLAG_OUT_OF_DOMAIN
+        out[(m.view(np.uint8) @ np.ones(m.shape[1], np.uint8)) > 0] = FLAG_OUT_OF_DOMAIN | FLAG_DOMAIN_FEATURES
     else:
-        out[m.any(axis=1)] = FLAG_OUT_OF_DOMAIN
+        out[m.any(axis=1)] = FLAG_OUT_OF_DOMAIN | FLAG_DOMAIN_FEATURES
     return out
 
 

@@ -2,7 +2,8 @@
 
 One pass over the kept points gives what ``ScanHandler.process`` built from a dozen numpy expressions (each a full
 pass with its temporaries): the GRAZING_INCIDENCE / GRAZING_VIEW bits (:func:`flags.angle_flags`), the per-feature
-OUT_OF_DOMAIN range check (:func:`flags.domain_flags`) and the multivariate and shape ones, UNRELIABLE_NORMAL,
+OUT_OF_DOMAIN range check (:func:`flags.domain_flags`) and the multivariate and shape ones, each with its reason bit
+(DOMAIN_FEATURES, DOMAIN_MULTIVARIATE, DOMAIN_SHAPE), UNRELIABLE_NORMAL,
 OVER_TOLERANCE on |d|, INVALID_POINT for a non-finite prediction, NO_UNCERTAINTY, and the ISO 14253-1 decision
 class (:func:`flags.point_decisions`) with its NON_CONFORMING / UNDECIDED bits. A second pass writes d, U, the flags
 and the classes into the (N,) cloud order and gives every point with a non-finite d and no flag INVALID_POINT.
@@ -30,13 +31,17 @@ NO_DECISION = 255  # decision class of a point without a finite prediction
 
 _PAR: dict[str, Any] = {"cache": True, "nogil": True, "error_model": "numpy", "parallel": True}
 _GI, _GV = np.uint16(fl.FLAG_GRAZING_INCIDENCE), np.uint16(fl.FLAG_GRAZING_VIEW)
-_OOD, _UNREL = np.uint16(fl.FLAG_OUT_OF_DOMAIN), np.uint16(fl.FLAG_UNRELIABLE_NORMAL)
+_UNREL = np.uint16(fl.FLAG_UNRELIABLE_NORMAL)
 _OVER, _INVALID = np.uint16(fl.FLAG_OVER_TOLERANCE), np.uint16(fl.FLAG_INVALID_POINT)
 _NOU, _NONCONF = np.uint16(fl.FLAG_NO_UNCERTAINTY), np.uint16(fl.FLAG_NON_CONFORMING)
 _UNDEC = np.uint16(fl.FLAG_UNDECIDED)
 _CONF_C, _NONCONF_C, _UNDEC_C = np.uint8(fl.CONFORMING), np.uint8(fl.NON_CONFORMING), np.uint8(fl.UNDECIDED)
 _NODEC = np.uint8(NO_DECISION)
 _OOV, _OUTLIER = np.uint16(fl.FLAG_OUT_OF_VOLUME), np.uint16(fl.FLAG_OUTLIER)
+# OUT_OF_DOMAIN with its reason
+_OOD_F = np.uint16(fl.FLAG_OUT_OF_DOMAIN | fl.FLAG_DOMAIN_FEATURES)
+_OOD_MV = np.uint16(fl.FLAG_OUT_OF_DOMAIN | fl.FLAG_DOMAIN_MULTIVARIATE)
+_OOD_S = np.uint16(fl.FLAG_OUT_OF_DOMAIN | fl.FLAG_DOMAIN_SHAPE)
 
 
 @njit(**_PAR)
@@ -106,12 +111,12 @@ def _kept(pred, U, cos_i, cos_v, thr_i, thr_v, X, lo_m, hi_m, mv_ood, shape_ood,
         for j in range(f_n):
             x = X[i, j]
             if x < lo_m[j] or x > hi_m[j]:
-                f |= _OOD
+                f |= _OOD_F
                 break
         if use_mv and mv_ood[i]:
-            f |= _OOD
+            f |= _OOD_MV
         if use_shape and shape_ood[i]:
-            f |= _OOD
+            f |= _OOD_S
         if nq[i] < nq_min:
             f |= _UNREL
         p0, p1, p2 = pred[i, 0], pred[i, 1], pred[i, 2]
