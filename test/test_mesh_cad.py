@@ -39,6 +39,12 @@ def test_compensation_lowers_the_deviation_error_against_cad(handler: ScanHandle
         if g["in_domain"]["n"] >= 100:
             assert g["in_domain"]["coverage"] >= 0.90, (name, g)
     assert r["mae_ratio_to_oracle"][2] < 1.1  # Z, the largest error, near the floor
+    # Along the CAD normal per region type: the regions partition the points, and each share is the coverage of
+    # |after − true form| ≤ u_normal on that region's points (the overall figure is their weighted mean).
+    nreg = kp["normal_coverage_regions"]
+    assert sum(g["n"] for g in nreg.values()) == r["points"]
+    assert sum(g["n"] * g["all"] for g in nreg.values() if g["n"]) == pytest.approx(kp["normal_coverage"]
+                                                                                    * r["points"])
     # The shape part of the domain (curvature outside the calibration's spheres and cylinder) says where the
     # intervals fail: its points are covered less and hold a larger share of the misses than of the points.
     assert cov["shape_in_domain"]["coverage"] >= 0.90

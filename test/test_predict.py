@@ -144,6 +144,32 @@ def test_foreign_scan_reason_on_units_and_ranges():
     assert foreign_scan_reason(p[:0], scan.pose, m) == ""
 
 
+def test_foreign_scan_reason_takes_each_profiles_own_pose():
+    """A head carried sideways along the pass (5 m over the scan: a gantry along a long part; each profile posed by
+    its own head pose):
+    judged from the first pose alone most points lie far outside the measuring range; from their own profiles'
+    poses, none does."""
+    from xmetro_ros.judge.scan_handler import foreign_scan_reason
+    from xmetro_ros.scan.artifacts import Sphere
+    from xmetro_ros.scan.geometry import RowPoses
+    from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
+    from xmetro_ros.sim import simulate_scan
+
+    m = ScannerModel.load()
+    scan = simulate_scan(Sphere(22.5), ScanSettings(6.0, 3.0, 0.5), scanner=m, seed=1)
+    h, w, _ = scan.points.shape
+    shift = np.zeros((h, 3))
+    shift[:, 0] = np.linspace(0.0, 5000.0, h)  # row i's head and points moved together
+    pts = scan.points + shift[:, None, :]
+    poses = RowPoses(positions=np.asarray(scan.pose.position) + shift,
+                     rotations=np.repeat(np.asarray(scan.pose.rotation)[None], h, axis=0),
+                     rows=np.repeat(np.arange(h, dtype=np.int32)[:, None], w, axis=1))
+    valid = np.isfinite(pts).all(axis=2).reshape(-1)
+    p = pts.reshape(-1, 3)[valid]
+    assert "not a laser line scan" in foreign_scan_reason(p, scan.pose, m)
+    assert foreign_scan_reason(p, scan.pose, m, (poses.rows.reshape(-1)[valid], poses)) == ""
+
+
 def test_predict_refuses_bad_model_and_bad_params(tmp_path):
     with pytest.raises(PredictError, match="no usable model"):
         predict_bag(BAGS / "demo.mcap", tmp_path / "a.mcap", model_dir=tmp_path / "nope")

@@ -67,15 +67,22 @@ def foreign_scan_reason(points: np.ndarray, pose: HeadPose | None, scanner: Scan
     The distance of a point from the laser source in the laser plane (``point_geometry``'s source distance: the
     head's motion along the scan direction does not change it) is what a laser line scanner measures; its median
     over the scan must lie within the measuring range widened ``FOREIGN_RANGE_FACTOR`` times for all but
-    ``FOREIGN_FRACTION`` of the points. Without a pose the study's set-up (looking down from the reference
-    stand-off) is assumed, as for defaulted settings."""
-    from ..scan.geometry import point_geometry
+    ``FOREIGN_FRACTION`` of the points. ``posed`` = (pose index of each of ``points`` (N,), the row poses): each
+    point's distance from its own profile's source (a head that turns or changes stand-off along the pass); else
+    from ``pose``, and without one the study's set-up (looking down from the reference stand-off) is assumed, as
+    for defaulted settings."""
+    from ..scan.geometry import point_geometry, point_geometry_posed
 
     if len(points) == 0:
         return ""
-    p = np.asarray(np.asarray(points)[:: max(1, len(points) // FOREIGN_CHECK_POINTS)], dtype=np.float64)
-    head = pose if pose is not None else HeadPose.looking_down(scanner.standoff_mm)
-    dist = np.asarray(point_geometry(p, head, scanner.camera_mm).source_distance, dtype=np.float64)
+    step = max(1, len(points) // FOREIGN_CHECK_POINTS)
+    p = np.asarray(np.asarray(points)[::step], dtype=np.float64)
+    if posed is not None:
+        geo = point_geometry_posed(p, np.asarray(posed[0])[::step], posed[1], scanner.camera_mm)
+    else:
+        head = pose if pose is not None else HeadPose.looking_down(scanner.standoff_mm)
+        geo = point_geometry(p, head, scanner.camera_mm)
+    dist = np.asarray(geo.source_distance, dtype=np.float64)
     near, far = (float(v) for v in scanner.depth_of_field_mm)
     hi, lo = FOREIGN_RANGE_FACTOR * far, near / FOREIGN_RANGE_FACTOR
     out = (dist > hi) | (dist < lo)

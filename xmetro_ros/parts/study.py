@@ -127,7 +127,7 @@ def evaluate_part(name: str, handler: Any, settings: Any, *, seed: int = 0, form
     form = np.einsum("ij,ij->i", man.project(dev.cad_points) - dev.cad_points, dev.normals)
     rb, ra = dev.before - form, dev.after - form
     cov_n = np.abs(ra) <= dev.u_normal
-    out["cad"] = {"known_pose": _cad_scores(rb, ra, cov_n, ood), "u_normal": summary_um(dev.u_normal)}
+    out["cad"] = {"known_pose": _cad_scores(rb, ra, cov_n, ood, region), "u_normal": summary_um(dev.u_normal)}
     if register:
         # Best-fit registration, as a user without a fixture would do: the truth is then the deviation map of the
         # true (noise-free, error-free) surface points registered the same way; the product's maps are the raw and
@@ -162,7 +162,15 @@ def label_cad_regions(cad: Any, points_scan: np.ndarray) -> tuple[np.ndarray, np
     return label_regions(cad, points_scan @ inv[:3, :3].T + inv[:3, 3])
 
 
-def _cad_scores(rb: np.ndarray, ra: np.ndarray, cov_n: np.ndarray, ood: np.ndarray) -> dict[str, Any]:
+def _share(m: np.ndarray) -> float | None:
+    return float(m.mean()) if len(m) else None
+
+
+def _cad_scores(rb: np.ndarray, ra: np.ndarray, cov_n: np.ndarray, ood: np.ndarray,
+                region: np.ndarray | None = None) -> dict[str, Any]:
+    """MAE / p95 of the CAD deviation before and after compensation against the true form (µm), their factors,
+    and the coverage of |after − true form| ≤ u_normal: all points, in domain and (``region`` labels given) per
+    region type, all / in domain."""
     b = np.abs(rb[np.isfinite(rb)])
     a = np.abs(ra[np.isfinite(ra)])
     mb, ma = float(b.mean() * 1e3), float(a.mean() * 1e3)
@@ -170,7 +178,10 @@ def _cad_scores(rb: np.ndarray, ra: np.ndarray, cov_n: np.ndarray, ood: np.ndarr
     return {"before": {"mae_um": mb, "p95_um": pb}, "after": {"mae_um": ma, "p95_um": pa},
             "factor_mae": mb / ma if ma > 0 else None, "factor_p95": pb / pa if pa > 0 else None,
             "normal_coverage": float(cov_n.mean()), "normal_coverage_in_domain":
-                float(cov_n[~ood].mean()) if (~ood).any() else None}
+                float(cov_n[~ood].mean()) if (~ood).any() else None,
+            **({} if region is None else {"normal_coverage_regions": {
+                r: {"n": int((region == k).sum()), "all": _share(cov_n[region == k]),
+                    "in_domain": _share(cov_n[(region == k) & ~ood])} for k, r in enumerate(REGIONS)}})}
 
 
 def _plot(part: str, maps: dict[str, np.ndarray], path: Path) -> None:
@@ -279,15 +290,34 @@ def markdown(summary: dict[str, Any]) -> str:
             lines.append(f"| {name} | {'/'.join(f'{x:g}' for x in r['settings'])} | "
                          f"{_pct(c['shape_in_domain']['coverage'])} / {_pct(c['shape_out_of_domain']['coverage'])} | "
                          f"{_pct(r['shape_out_of_domain_share'])} / {_pct(r['misses_shape_out_of_domain_share'])} |")
-    lines += ["", "Coverage per region type (all points / in domain; n all), every settings:", "",
+    lines += ["", "Coverage per axis (|actual − d| ≤ U of each axis) and along the CAD normal (|after − true form| ≤ "
+              "u_normal, pose known), all points / in domain:", "",
+              "| part | settings | x | y | z | normal |", "|---|---|---|---|---|---|"]
+    for name, rows in summary["parts"].items():
+        for r in rows:
+            c, kp = r["coverage"], r["cad"]["known_pose"]
+            axes = [f"{_pct(a)} / {_pct(b)}" for a, b in zip(c["all"]["coverage_xyz"],
+                                                             c["in_domain"]["coverage_xyz"] or [None] * 3,
+                                                             strict=True)]
+            lines.append(f"| {name} | {'/'.join(f'{x:g}' for x in r['settings'])} | " + " | ".join(axes)
+                         + f" | {_pct(kp['normal_coverage'])} / {_pct(kp['normal_coverage_in_domain'])} |")
+    lines += ["", "Coverage per region type, all points / in domain: per axis x, y, z, then along the CAD normal "
+              "(n = points of that region):", "",
               "| part | settings | " + " | ".join(REGIONS) + " |", "|---|---|" + "---|" * len(REGIONS)]
     for name, rows in summary["parts"].items():
         for r in rows:
             cells = []
+            nreg = r["cad"]["known_pose"].get("normal_coverage_regions", {})
             for reg_name in REGIONS:
                 g = r["coverage"]["regions"][reg_name]
-                cells.append(f"{_pct(g['all']['coverage'])} / {_pct(g['in_domain']['coverage'])} "
-                             f"(n {g['all']['n']})" if g["all"]["n"] else "—")
+                if not g["all"]["n"]:
+                    cells.append("—")
+                    continue
+                xyz = ", ".join(f"{_pct(a)} / {_pct(b)}" for a, b in zip(
+                    g["all"]["coverage_xyz"], g["in_domain"]["coverage_xyz"] or [None] * 3, strict=True))
+                nr = nreg.get(reg_name)
+                normal = f"; normal {_pct(nr['all'])} / {_pct(nr['in_domain'])}" if nr else ""
+                cells.append(f"{xyz}{normal} (n {g['all']['n']})")
             lines.append(f"| {name} | {'/'.join(f'{x:g}' for x in r['settings'])} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
