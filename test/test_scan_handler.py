@@ -122,6 +122,33 @@ def test_out_of_domain_says_which_check_and_only_the_multivariate_one_widens_u(h
     assert (bit[fl.FLAG_DOMAIN_SHAPE] & ~far).any() and (bit[fl.FLAG_DOMAIN_FEATURES] & ~far).any()
     q = r.quality["flag_counts"]
     assert q[fl.FLAG_BITS.index(fl.FLAG_DOMAIN_SHAPE)] == int(bit[fl.FLAG_DOMAIN_SHAPE].sum())
+    # the verdict's message says which flags, and why out of domain
+    assert r.quality["verdict"] >= fl.VERDICT_WARN
+    assert "(flags: out_of_domain " in r.quality["message"] and "domain_features" in r.quality["message"]
+
+
+def test_flag_breakdown_names_the_flags_behind_a_verdict():
+    counts = [0] * len(fl.FLAG_BITS)
+
+    def put(bit: int, n: int) -> None:
+        counts[fl.FLAG_BITS.index(bit)] = n
+
+    put(fl.FLAG_OUT_OF_DOMAIN, 600)
+    put(fl.FLAG_DOMAIN_SHAPE, 550)
+    put(fl.FLAG_DOMAIN_MULTIVARIATE, 100)
+    put(fl.FLAG_DOMAIN_FEATURES, 3)
+    put(fl.FLAG_GRAZING_VIEW, 80)
+    put(fl.FLAG_OUTLIER, 10)  # 1 %: under the 5 % shown
+    put(fl.FLAG_INVALID_POINT, 5000)  # empty cells: never shown
+    put(fl.FLAG_UNDECIDED, 900)  # a decision bit, not a quality bit
+    why = fl.flag_breakdown(counts, 1000)
+    assert why == ("out_of_domain 60 % (domain_shape 55 %, domain_multivariate 10 %, domain_features <1 %), "
+                   "grazing_view 8 %")
+    assert fl.flag_breakdown(counts, 0) == "" and fl.flag_breakdown([0] * len(fl.FLAG_BITS), 1000) == ""
+    code, msg = fl.verdict(1000, 340, 660, 0, fl.VerdictThresholds(), flags_why=why)
+    assert code == fl.VERDICT_RESCAN and msg == f"usable fraction 0.340 < 0.5 (flags: {why})"
+    code, msg = fl.verdict(1000, 700, 300, 0, fl.VerdictThresholds(), settings_defaulted=True, flags_why=why)
+    assert code == fl.VERDICT_WARN and msg == f"flagged fraction 0.300 > 0.25 (flags: {why}); settings defaulted"
 
 
 def test_domain_and_angle_flags_unit():

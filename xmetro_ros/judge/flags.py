@@ -96,6 +96,7 @@ __all__ = [
     "angle_flags",
     "decision_classes",
     "domain_flags",
+    "flag_breakdown",
     "flag_counts",
     "point_decisions",
     "verdict",
@@ -251,24 +252,52 @@ def point_decisions(d: np.ndarray, U: np.ndarray, tol: float, rule: str = "guard
     return decision_classes(dn, un, tol, rule)
 
 
+def flag_breakdown(counts: list[int], n_valid: int, min_share: float = 0.05) -> str:
+    """Which quality flags make a scan's points unfit, for its verdict message: each quality bit set on at least
+    ``min_share`` of the ``n_valid`` valid points, most frequent first, as "name share", out_of_domain with its
+    reasons in parentheses; ``counts`` as :func:`flag_counts` (in :data:`FLAG_BITS` order). INVALID_POINT and
+    OUT_OF_VOLUME are left out (the empty cells of an organized scan carry them); '' when none reaches the share."""
+    if n_valid <= 0:
+        return ""
+    by_bit = dict(zip(FLAG_BITS, counts, strict=True))
+    shown = [b for b in FLAG_BITS if b & QUALITY_BITS and b not in (FLAG_INVALID_POINT, FLAG_OUT_OF_VOLUME)
+             and by_bit[b] >= min_share * n_valid]
+    def item(b: int) -> str:
+        pct = 100 * by_bit[b] / n_valid
+        return f"{FLAG_NAMES[FLAG_BITS.index(b)]} {pct:.0f} %" if pct >= 1 else f"{FLAG_NAMES[FLAG_BITS.index(b)]} <1 %"
+
+    parts = []
+    for b in sorted(shown, key=lambda b: -by_bit[b]):
+        text = item(b)
+        if b == FLAG_OUT_OF_DOMAIN:
+            why = [r for r in (FLAG_DOMAIN_FEATURES, FLAG_DOMAIN_MULTIVARIATE, FLAG_DOMAIN_SHAPE) if by_bit[r]]
+            if why:
+                text += " (" + ", ".join(item(r) for r in sorted(why, key=lambda r: -by_bit[r])) + ")"
+        parts.append(text)
+    return ", ".join(parts)
+
+
 def verdict(n_valid: int, n_usable: int, n_flagged: int, n_over_tolerance: int, th: VerdictThresholds,
-            settings_defaulted: bool = False, decimated: bool = False, n_undecided: int = 0) -> tuple[int, str]:
+            settings_defaulted: bool = False, decimated: bool = False, n_undecided: int = 0,
+            flags_why: str = "") -> tuple[int, str]:
     """Verdict code and a short reason from the point counts (see the module docstring).
 
-    ``n_over_tolerance`` is the count of non-conforming points (= over tolerance under the "simple" rule)."""
+    ``n_over_tolerance`` is the count of non-conforming points (= over tolerance under the "simple" rule);
+    ``flags_why`` (:func:`flag_breakdown`) follows the usable or flagged fraction when that decides."""
+    why = f" (flags: {flags_why})" if flags_why else ""
     if n_valid < th.min_valid_points:
         return VERDICT_RESCAN, f"only {n_valid} valid points (< {th.min_valid_points})"
     usable = n_usable / n_valid
     over = n_over_tolerance / n_valid
     if usable < th.rescan_usable_fraction:
-        return VERDICT_RESCAN, f"usable fraction {usable:.3f} < {th.rescan_usable_fraction:g}"
+        return VERDICT_RESCAN, f"usable fraction {usable:.3f} < {th.rescan_usable_fraction:g}{why}"
     if over > th.rescan_over_tolerance_fraction:
         return VERDICT_RESCAN, f"non-conforming fraction {over:.3f} > {th.rescan_over_tolerance_fraction:g}"
     reasons = []
     if n_undecided / n_valid > th.warn_flagged_fraction:
         reasons.append(f"undecided fraction {n_undecided / n_valid:.3f} > {th.warn_flagged_fraction:g}")
     if n_flagged / n_valid > th.warn_flagged_fraction:
-        reasons.append(f"flagged fraction {n_flagged / n_valid:.3f} > {th.warn_flagged_fraction:g}")
+        reasons.append(f"flagged fraction {n_flagged / n_valid:.3f} > {th.warn_flagged_fraction:g}{why}")
     if settings_defaulted:
         reasons.append("settings defaulted")
     if decimated:

@@ -563,7 +563,10 @@ class ScanHandler:
         code, reason = fl.verdict(n_valid, n_usable, n_quality - (n_received - n_valid),
                                   int(dec_counts[fl.NON_CONFORMING]), self.params.thresholds,
                                   settings_defaulted=settings_defaulted, decimated=decimated,
-                                  n_undecided=int(dec_counts[fl.UNDECIDED]))
+                                  n_undecided=int(dec_counts[fl.UNDECIDED]),
+                                  # which flags: a user acts differently on grazing points (turn the head) and on
+                                  # unseen shapes (a model that knows them)
+                                  flags_why=fl.flag_breakdown(counts, n_valid))
         if rescan_reason:
             code, reason = max(code, fl.VERDICT_RESCAN), f"{rescan_reason}; {reason}"
         mean, p95 = abs_error_stats(pred, finite, 95.0)
