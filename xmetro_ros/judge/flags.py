@@ -262,6 +262,7 @@ def flag_breakdown(counts: list[int], n_valid: int, min_share: float = 0.05) -> 
     by_bit = dict(zip(FLAG_BITS, counts, strict=True))
     shown = [b for b in FLAG_BITS if b & QUALITY_BITS and b not in (FLAG_INVALID_POINT, FLAG_OUT_OF_VOLUME)
              and by_bit[b] >= min_share * n_valid]
+
     def item(b: int) -> str:
         pct = 100 * by_bit[b] / n_valid
         return f"{FLAG_NAMES[FLAG_BITS.index(b)]} {pct:.0f} %" if pct >= 1 else f"{FLAG_NAMES[FLAG_BITS.index(b)]} <1 %"

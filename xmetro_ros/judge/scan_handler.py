@@ -202,7 +202,8 @@ class ScanResult:
         decisions: (N,) uint8 decision class (flags.CONFORMING / NON_CONFORMING / UNDECIDED) per point; 255 where
             there is no prediction.
         shape_out_of_domain: (M,) bool per row of ``prepared``: a surface shape (mean curvature) outside the model's
-            calibration shapes (flagged OUT_OF_DOMAIN, U not widened); None when the card has no ``domain_shape``.
+            calibration shapes (flagged OUT_OF_DOMAIN and DOMAIN_SHAPE, U not widened); None when the card has no
+            ``domain_shape``.
         model_id: id of the model set that judged the scan (the primary, or the pose model: :meth:`ScanHandler.route`).
     """
 
