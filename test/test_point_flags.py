@@ -85,7 +85,7 @@ def test_compiled_flags_are_the_numpy_composition(seed, m, f, rule, cos64, with_
 
 
 def test_each_out_of_domain_reason_sets_its_own_bit_with_out_of_domain():
-    # four points: in domain; a feature beyond its widened range; multivariate only; shape only; then all three
+    # five points: in domain; a feature beyond its widened range; multivariate only; shape only; all three
     X = np.array([[0.0], [3.0], [0.0], [0.0], [3.0]], np.float32)
     mv = np.array([False, False, True, False, True])
     shape = np.array([False, False, False, True, True])

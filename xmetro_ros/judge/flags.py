@@ -67,6 +67,7 @@ __all__ = [
     "CONFORMING",
     "DECISION_NAMES",
     "DECISION_RULES",
+    "DOMAIN_REASONS",
     "DOMAIN_REASON_BITS",
     "FLAG_BITS",
     "FLAG_DOMAIN_FEATURES",
@@ -125,7 +126,8 @@ FLAG_BITS = (FLAG_OUTLIER, FLAG_GRAZING_INCIDENCE, FLAG_GRAZING_VIEW, FLAG_OVER_
 FLAG_NAMES = ("outlier", "grazing_incidence", "grazing_view", "over_tolerance", "out_of_domain",
               "unreliable_normal", "invalid_point", "out_of_volume", "non_conforming", "undecided", "no_uncertainty",
               "domain_features", "domain_multivariate", "domain_shape")
-#: The reason bits of OUT_OF_DOMAIN.
+#: The reasons for OUT_OF_DOMAIN, each its own bit, and their union.
+DOMAIN_REASONS = (FLAG_DOMAIN_FEATURES, FLAG_DOMAIN_MULTIVARIATE, FLAG_DOMAIN_SHAPE)
 DOMAIN_REASON_BITS = FLAG_DOMAIN_FEATURES | FLAG_DOMAIN_MULTIVARIATE | FLAG_DOMAIN_SHAPE
 #: Bits that make a point unfit ("flagged", not "usable" in the verdict); the decision bits are not among them.
 QUALITY_BITS = (FLAG_OUTLIER | FLAG_GRAZING_INCIDENCE | FLAG_GRAZING_VIEW | FLAG_OVER_TOLERANCE | FLAG_OUT_OF_DOMAIN
@@ -260,22 +262,20 @@ def flag_breakdown(counts: list[int], n_valid: int, min_share: float = 0.05) -> 
     if n_valid <= 0:
         return ""
     by_bit = dict(zip(FLAG_BITS, counts, strict=True))
-    shown = [b for b in FLAG_BITS if b & QUALITY_BITS and b not in (FLAG_INVALID_POINT, FLAG_OUT_OF_VOLUME)
-             and by_bit[b] >= min_share * n_valid]
+    name = dict(zip(FLAG_BITS, FLAG_NAMES, strict=True))
 
-    def item(b: int) -> str:
-        pct = 100 * by_bit[b] / n_valid
-        return f"{FLAG_NAMES[FLAG_BITS.index(b)]} {pct:.0f} %" if pct >= 1 else f"{FLAG_NAMES[FLAG_BITS.index(b)]} <1 %"
+    def items(bits: list[int]) -> list[str]:  # most frequent first, "name share"
+        out = []
+        for b in sorted(bits, key=lambda b: -by_bit[b]):
+            pct = 100 * by_bit[b] / n_valid
+            out.append(f"{name[b]} {pct:.0f} %" if pct >= 1 else f"{name[b]} <1 %")
+            if b == FLAG_OUT_OF_DOMAIN and any(by_bit[r] for r in DOMAIN_REASONS):
+                out[-1] += " (" + ", ".join(items([r for r in DOMAIN_REASONS if by_bit[r]])) + ")"
+        return out
 
-    parts = []
-    for b in sorted(shown, key=lambda b: -by_bit[b]):
-        text = item(b)
-        if b == FLAG_OUT_OF_DOMAIN:
-            why = [r for r in (FLAG_DOMAIN_FEATURES, FLAG_DOMAIN_MULTIVARIATE, FLAG_DOMAIN_SHAPE) if by_bit[r]]
-            if why:
-                text += " (" + ", ".join(item(r) for r in sorted(why, key=lambda r: -by_bit[r])) + ")"
-        parts.append(text)
-    return ", ".join(parts)
+    return ", ".join(items([b for b in FLAG_BITS if b & QUALITY_BITS and b not in (FLAG_INVALID_POINT,
+                                                                                     FLAG_OUT_OF_VOLUME)
+                            and by_bit[b] >= min_share * n_valid]))
 
 
 def verdict(n_valid: int, n_usable: int, n_flagged: int, n_over_tolerance: int, th: VerdictThresholds,

@@ -177,8 +177,7 @@ def _cad_scores(rb: np.ndarray, ra: np.ndarray, cov_n: np.ndarray, ood: np.ndarr
     pb, pa = float(np.percentile(b, 95) * 1e3), float(np.percentile(a, 95) * 1e3)
     return {"before": {"mae_um": mb, "p95_um": pb}, "after": {"mae_um": ma, "p95_um": pa},
             "factor_mae": mb / ma if ma > 0 else None, "factor_p95": pb / pa if pa > 0 else None,
-            "normal_coverage": float(cov_n.mean()), "normal_coverage_in_domain":
-                float(cov_n[~ood].mean()) if (~ood).any() else None,
+            "normal_coverage": float(cov_n.mean()), "normal_coverage_in_domain": _share(cov_n[~ood]),
             **({} if region is None else {"normal_coverage_regions": {
                 r: {"n": int((region == k).sum()), "all": _share(cov_n[region == k]),
                     "in_domain": _share(cov_n[(region == k) & ~ood])} for k, r in enumerate(REGIONS)}})}
