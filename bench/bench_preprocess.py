@@ -3,7 +3,7 @@
 Measured side by side in one run (this machine is shared and noisy; the load average is recorded): the organized
 grid path (outliers + normals + geometry), the study's 14 features, open3d's KD-tree normal estimation alone on the
 same points, and the unorganized path with both methods — ``open3d`` (dedupe + open3d SOR + open3d normals, the
-reference) and ``knn`` (dedupe + ONE scipy cKDTree query shared by SOR and normals, the default) — on the plain
+reference) and ``knn`` (dedupe + ONE exact grid kNN query shared by SOR and normals, the default) — on the plain
 cloud (scan order and shuffled) and with 78 % exact duplicates as in a real bag, plus a breakdown of the knn path
 and its agreement with open3d on the same cloud. Writes bench/results/preprocess.json. Targets: grid ≤ 0.3 × open3d
 normals; unorganized prepare ≤ 400 ms (the whole live pipeline must fit in 400 ms on 2 cores).
@@ -18,6 +18,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from xmetro_ros import preprocess as pp
@@ -93,8 +94,30 @@ def main() -> None:
     # breakdown of the knn path on the distinct cloud (scan order)
     k = max(knn_cfg.nb_neighbors, knn_cfg.knn_normal_neighbors)
     res["knn_breakdown"] = {"dedupe": best(lambda: pp.dedupe(flat))}
-    res["knn_breakdown"][f"knn_query_k{k}"] = best(lambda: pp_knn._knn(flat, k, knn_cfg.knn_workers))
-    dist, nbr, query = pp_knn._knn(flat, k, knn_cfg.knn_workers)
+    workers = knn_cfg.knn_workers or numba.get_num_threads()  # as prepare_scan resolves it
+    res["knn_breakdown"][f"knn_query_k{k}"] = best(lambda: pp_knn._knn(flat, k, workers))
+    # the kNN query against scipy's cKDTree (what it was before the grid search), at 1 and 2 threads, interleaved
+    from scipy.spatial import cKDTree
+
+    from xmetro_ros.compute import threads as compute_threads
+
+    def tree_query(n: int) -> None:
+        tree = cKDTree(flat, leafsize=32, balanced_tree=False)
+        tree.query(flat[np.asarray(tree.indices)], k=k, workers=n)
+
+    res["knn_query_grid_vs_tree"] = {}
+    before = compute_threads.budget()
+    for n in (1, 2):
+        compute_threads.use_threads(n)
+        grid_t, tree_t = [], []
+        for _ in range(7):
+            grid_t.append(best(lambda n=n: pp_knn._knn(flat, k, n), n=1)[0])
+            tree_t.append(best(lambda n=n: tree_query(n), n=1)[0])
+        res["knn_query_grid_vs_tree"][str(n)] = {"grid_median": float(np.median(grid_t)),
+                                                 "tree_median": float(np.median(tree_t)),
+                                                 "ratio": float(np.median(grid_t) / np.median(tree_t))}
+    compute_threads.use_threads(before)
+    dist, nbr, query = pp_knn._knn(flat, k, workers)
     keep = np.zeros(len(flat), bool)
     keep[query] = pp_knn._sor_keep(dist, knn_cfg.nb_neighbors, knn_cfg.std_ratio)
     sel = np.flatnonzero(keep[query])

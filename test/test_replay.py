@@ -115,6 +115,45 @@ def test_replay_without_node_fails_with_reason(tmp_path):
         replay_bag(bag, fast=True, node_name="no_such_node", scan_topic="/no_such_scan", discovery_timeout=1.0)
 
 
+def test_replay_starts_over_with_a_new_participant_and_says_what_it_saw(tmp_path):
+    """Not found within ``rediscover_after``: the replay tries once more with a new DDS participant (other
+    ports, a new identity) and finds a node that came up meanwhile; never found, the error lists what it saw."""
+    import threading
+
+    from rclpy.node import Node
+    from sensor_msgs.msg import PointCloud2
+
+    from xmetro_ros.apps.replay import _Replayer
+
+    def late_node(ctx):
+        n = Node("late_node", context=ctx)
+        n.create_subscription(PointCloud2, "/late_scan", lambda _m: None, 10)
+        n.create_publisher(ScanQuality, "/late_node/quality", 10)
+        return n
+
+    lines: list[str] = []
+    rep = _Replayer("late_node", "/late_scan", "/late_settings", None, lines.append)
+    first = rep.node
+    holder: dict = {}
+    timer = threading.Timer(2.5, lambda: holder.setdefault("sp", NodeSpinner(late_node)))
+    timer.start()
+    try:
+        rep.connect(30.0, need_settings=False, rediscover_after=1.0)
+        assert rep.node is not first and any("new DDS participant" in x for x in lines), lines
+        assert rep.pub_scan.get_subscription_count() == 1
+    finally:
+        timer.join()
+        rep.close()
+        holder["sp"].close()
+    gone = _Replayer("gone_node", "/gone_scan", "/gone_settings", None, lines.append)
+    try:
+        with pytest.raises(ReplayError, match=r"seen: 0 subscription\(s\) of /gone_scan, 0 publisher\(s\) of "
+                                              r"/gone_node/quality, nodes: "):
+            gone.connect(1.5, need_settings=False, rediscover_after=0.5)
+    finally:
+        gone.close()
+
+
 def test_cli_replay_prints_summary(live_node, capsys):
     need_shared(TRUCK)
     import argparse

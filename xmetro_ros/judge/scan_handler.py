@@ -236,8 +236,10 @@ def warm_up() -> float:
     grid_kernels.warm_up()
     curvature.grid_mean_curvature(np.zeros((1, 3)), np.ones((1, 3), np.float32), np.zeros(1, np.int64), (2, 2), 1.0,
                                   1.0)
+    from ..preprocess import knn_grid
     from ..preprocess.knn import _knn_normals
 
+    knn_grid.warm_up()
     _knn_normals(np.eye(3), np.arange(3), np.zeros((3, 3)), np.tile(np.arange(3), (3, 1)), np.ones(3, bool), 1.0)
     flags = np.array([0, 1, 3, 64], np.uint16)
     scan_stats.flag_tally(flags, fl.FLAG_BITS)

@@ -11,8 +11,8 @@ Two paths:
   quality is the length of that mean (1 = full, planar, noise-free window; lower near holes, edges, noise).
 - **Unorganized** (N × 3), after removing exact duplicate points (real bags hold many; they break the neighbour
   statistics and make KD-trees slow). Two selectable methods (``PreprocessConfig.unorganized_method``):
-  ``"knn"`` (default, the live path): ONE k-nearest-neighbour query (scipy cKDTree, queried in the tree's leaf order
-  for cache locality) feeds both steps: statistical outlier removal exactly as open3d defines it, then normals from
+  ``"knn"`` (default, the live path): ONE exact k-nearest-neighbour query (a compiled, parallel grid search,
+  :mod:`.knn_grid`) feeds both steps: statistical outlier removal exactly as open3d defines it, then normals from
   the covariance of the kept points among the same neighbours (within ``normal_radius_mm``), smallest eigenvector by
   a closed-form 3×3 symmetric solver; quality = planarity 1 − λ0/λ1 (eigenvalues ascending).
   ``"open3d"`` (the reference, as in the study): open3d statistical outlier removal and KD-tree normal estimation

@@ -23,7 +23,7 @@ def remove_outliers(
 ) -> np.ndarray:
     """Statistical outlier removal (open3d's definition) on (N, 3) finite points (mm). Returns the keep mask (N,).
 
-    ``method="open3d"`` calls open3d; ``"knn"`` computes the same statistic from a scipy cKDTree query (``workers``
+    ``method="open3d"`` calls open3d; ``"knn"`` computes the same statistic from one exact kNN query (``workers``
     threads). Exact duplicates are collapsed first (they would be each other's zero-distance neighbours) and share
     the verdict of their unique point."""
     p = _check_points(points)
