@@ -216,7 +216,7 @@ def _query(points: np.ndarray, order: np.ndarray, starts: np.ndarray, tk: np.nda
             fx, fy, fz = (px - lo[0]) * inv_h - cx, (py - lo[1]) * inv_h - cy, (pz - lo[2]) * inv_h - cz
             reach = (1.0 + min(min(fx, 1 - fx), min(min(fy, 1 - fy), min(fz, 1 - fz)))) * h
             if not (cnt == k and bd[k - 1] <= reach * reach):
-                # rings 0 and 1 are in the best list already (all of their points were offered)
+                # the best list already holds the k best of rings 0 and 1 (all of them when fewer): go on from 2
                 _search_rings(points, order, starts, tk, tv, lo, h, dims, k, q, bd, bi, 2, cnt)
             for j in range(k):
                 bd[j] = np.sqrt(bd[j])
