@@ -121,7 +121,11 @@ def _quality(client: NodeClient, pred, timeout: float = TIMEOUT) -> ScanQuality:
 
 
 def _diag_values(client: NodeClient) -> dict[str, str]:
+    """The key/values of the latest /diagnostics message; {} until one arrived (the node publishes it every
+    diagnostics_period: a loaded machine may not have delivered the first yet)."""
     with client.lock:
+        if not client.diagnostics:
+            return {}
         arr = client.diagnostics[-1][1]
     return {kv.key: kv.value for kv in arr.status[0].values}
 
@@ -222,6 +226,8 @@ def test_tf_problems_each_get_their_code_and_the_next_pass_is_judged(rig):
     # accounting: received = judged + dropped + waiting, and /diagnostics warned
     def balanced() -> bool:
         v = _diag_values(client)
+        if "profiles_received" not in v:
+            return False
         return int(v["profiles_received"]) == int(v["profiles_judged"]) + int(v["profiles_dropped"]) \
             + int(v["profiles_waiting"]) and int(v["profiles_waiting"]) == 0
     assert wait_for(balanced, TIMEOUT), _diag_values(client)
