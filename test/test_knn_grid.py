@@ -120,21 +120,16 @@ def test_unorganized_path_gives_the_same_bits_as_with_the_kd_tree(monkeypatch):
     """Outlier mask, normals and quality of the unorganized path on a scan: the same bits with the grid search as
     with scipy's tree as its kNN query (what the path used before)."""
     from xmetro_ros.preprocess import knn
+    from xmetro_ros.preprocess import knn_grid as knn_grid_module
     from xmetro_ros.scan.artifacts import Sphere
     from xmetro_ros.scan.scanner import ScanSettings
     from xmetro_ros.sim import simulate_scan
-
-    def tree_knn(points, k, workers=2):
-        tree = cKDTree(points, leafsize=32, balanced_tree=False)
-        order = np.asarray(tree.indices, dtype=np.int64)
-        d, i = tree.query(points[order], k=k, workers=int(workers))
-        return d.reshape(len(points), k), i.reshape(len(points), k), order
 
     s = simulate_scan(Sphere(20.0, np.zeros(3)), ScanSettings(6.0, 3.0, 2.0), seed=1)
     p = s.flat()[0].astype(np.float64)
     p = p[np.isfinite(p).all(axis=1)]
     grid = knn._knn_unorganized(p, 20, 2.0, 1.0, 20)
-    monkeypatch.setattr(knn, "_knn", tree_knn)
+    monkeypatch.setattr(knn, "_knn", lambda points, k, workers=2: knn_grid_module._knn_tree(points, k))
     tree = knn._knn_unorganized(p, 20, 2.0, 1.0, 20)
     assert (~grid[0]).sum() > 0  # the statistic removed some points: the masks are compared on something
     for a, b in zip(grid, tree, strict=True):

@@ -102,7 +102,7 @@ def _insert(bd: np.ndarray, bi: np.ndarray, cnt: int, k: int, d2: float, i: np.i
 @njit(cache=True, nogil=True)
 def _search_rings(points: np.ndarray, order: np.ndarray, starts: np.ndarray, tk: np.ndarray, tv: np.ndarray,
                   lo: np.ndarray, h: float, dims: np.ndarray, k: int, q: np.int64, bd: np.ndarray,
-                  bi: np.ndarray, ring: int = 0, cnt: int = 0) -> None:
+                  bi: np.ndarray, ring: int, cnt: int) -> None:
     """The k nearest neighbours of ``points[q]`` into (bd squared distances, bi), ring by ring: rings of cells at
     Chebyshev distance 0, 1, 2 ... from the query's cell until the k-th squared distance lies within the searched
     block (ring R guarantees every point closer than R·h plus the query's distance to its own cell's faces) or
@@ -235,7 +235,7 @@ def _grid(points: np.ndarray, lo: np.ndarray, h: float) -> tuple[np.ndarray, np.
     """(order of the points by cell, cell start offsets (C + 1,), cell keys (C,)) for cell size ``h``."""
     keys = np.empty(len(points), np.int64)
     _keys(points, lo, 1.0 / h, keys)
-    order = np.argsort(keys, kind="stable")
+    order = np.argsort(keys, kind="stable").astype(np.int64, copy=False)
     sk = keys[order]
     first = np.flatnonzero(np.r_[True, sk[1:] != sk[:-1]])
     return order, np.r_[first, len(points)].astype(np.int64), sk[first]
@@ -275,23 +275,24 @@ def knn_grid(points: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.nda
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     h = _cell_size(pts, lo, hi, k)
     target = CELL_FILL * k
+    h_min = float((hi - lo).max()) / (2 ** _BITS - 2)  # cell coordinates must fit their 21 bits
     for _ in range(3):  # the fill of a surface grows as h²: two corrections reach it within a factor ~1.5
-        h = max(h, float((hi - lo).max()) / (2 ** _BITS - 2))
+        h = max(h, h_min)
         order, starts, cell_keys = _grid(pts, lo, h)
         fill = n / len(cell_keys)
         if 0.5 * target <= fill <= 2.0 * target:
             break
         h *= float(np.clip(np.sqrt(target / fill), 0.25, 4.0))
     else:
-        h = max(h, float((hi - lo).max()) / (2 ** _BITS - 2))
+        h = max(h, h_min)
         order, starts, cell_keys = _grid(pts, lo, h)
     if not grid_fits(np.diff(starts), k):
         return _knn_tree(pts, k)
     size = 1 << int(np.ceil(np.log2(2 * len(cell_keys) + 1)))
     tk, tv = _table(cell_keys, size)
     dims = np.floor((hi - lo) * (1.0 / h)).astype(np.int64) + 1  # one spare: rounding of the keys' products
-    dist, idx = _query(pts, order.astype(np.int64), starts, tk, tv, lo, float(h), dims, int(k))
-    return dist, idx, order.astype(np.int64)
+    dist, idx = _query(pts, order, starts, tk, tv, lo, float(h), dims, int(k))
+    return dist, idx, order
 
 
 def warm_up() -> None:
