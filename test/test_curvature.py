@@ -87,6 +87,39 @@ def test_shape_domain_flags_what_training_never_saw(tmp_path) -> None:
     del card["domain_shape"]
     (d / "card.json").write_text(json.dumps(card))
     assert ScanHandler(ModelSet.load(d), SC).process(bowl.scan).shape_out_of_domain is None
-    _calibrate_default(d, "micro", 0)
+    _calibrate_default(d, "micro", 0, surfaces=False)
     block = json.loads((d / "card.json").read_text())["domain_shape"]
-    assert block["lo"] < 0.0 < block["hi"] < 0.1 and block["n"] > 10_000
+    assert block["lo"] < 0.0 < block["hi"] < 0.1 and block["n"] > 10_000 and "principal" not in block
+
+
+def test_calibration_with_surfaces_gives_u_per_class_and_the_judge_uses_it(tmp_path) -> None:
+    """``_calibrate_default`` with the calibration surfaces writes multipliers per surface class and the (κmin,
+    κmax) shape domain; the judge then gives each point its class's U (the same bits as the model set's own call
+    with the classes) and checks the shape in that plane: a saddle the calibration saw is in, the bowl's pocket
+    (concave, like the calibration's groove and dimple) mostly in."""
+    pytest.importorskip("open3d")
+    from xmetro_ros.apps.train import _calibrate_default
+    from xmetro_ros.judge.surface_class import surface_class
+    from xmetro_ros.parts.study import PRESENTATION
+    from xmetro_ros.preprocess.curvature import principal_curvatures
+    from xmetro_ros.scan.generated_parts import make_part
+
+    d = tmp_path / "m"
+    shutil.copytree(default_model_dir(), d)
+    _calibrate_default(d, "micro", 0)
+    card = json.loads((d / "card.json").read_text())
+    by = card["uncertainty"]["conditional"]["by_surface"]
+    assert by["classes"] == ["flat", "convex", "concave", "saddle"]
+    assert all(np.asarray(n).sum() > 500 for n in by["n"]), [np.asarray(n).sum() for n in by["n"]]
+    assert len(card["domain_shape"]["principal"]["cells"]) > 50
+    ms = ModelSet.load(d)
+    assert ms.by_surface and ms.principal_domain is not None
+    res = ScanHandler(ms, SC).process(simulate_scan(make_part("bowl").transformed(PRESENTATION),
+                                                    ScanSettings(10.0, 4.0, 0.5), scanner=SC, seed=3))
+    cls = surface_class(principal_curvatures(res.prepared))
+    assert (cls == 2).mean() > 0.2  # the pocket
+    up = ms.predict_with_uncertainty(res.features, surface_class=cls)
+    np.testing.assert_array_equal(res.row_uncertainty, up.U)
+    plain = ms.predict_with_uncertainty(res.features)
+    assert not np.array_equal(plain.U[cls == 0], up.U[cls == 0])
+    assert res.shape_out_of_domain is not None and res.shape_out_of_domain[cls == 2].mean() < 0.2

@@ -39,14 +39,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e.add_argument("--seed", type=int, default=0, help="seed of the campaign, the splits and the fits (default 0)")
     e.add_argument("--profile", choices=sorted(PROFILES), default="full",
                    help="run profile of the training (default full: the study's protocol)")
-    e.add_argument("--from", dest="from_dir", default=None,
-                   help=f"copy <DIR>/models/{DEFAULT_FAMILY} of a finished `xmetro train` run instead of training")
+    src = e.add_mutually_exclusive_group()
+    src.add_argument("--from", dest="from_dir", default=None,
+                     help=f"copy <DIR>/models/{DEFAULT_FAMILY} of a finished `xmetro train` run instead of training")
+    src.add_argument("--from-packaged", action="store_true",
+                     help="copy the packaged model set instead of training (to calibrate it again)")
     dest = e.add_mutually_exclusive_group(required=True)
     dest.add_argument("--out", default=None, help="target directory")
     dest.add_argument("--replace-packaged", action="store_true",
                       help="replace the model shipped in the package (models/default): never done without it")
     e.add_argument("--no-calibrate", action="store_true",
                    help="skip the conformal calibration on fresh clouds (the card then has no 'uncertainty')")
+    e.add_argument("--no-surfaces", action="store_true",
+                   help="calibrate on the training campaign's shapes only, as the packaged card was")
     e.set_defaults(func=run_export_default)
 
 
@@ -108,31 +113,56 @@ CALIBRATION_SEED_OFFSET = 1000  # calibration clouds: the profile's campaign sim
 CALIBRATION_POINTS_PER_CLOUD = 2000
 
 
-def _calibrate_default(model_dir: Path, profile: str, seed: int) -> None:
+def _calibrate_default(model_dir: Path, profile: str, seed: int, surfaces: bool = True) -> None:
     """Split-conformal calibration of the default model set on clouds it never saw: the profile's campaign
-    simulated again with seed + CALIBRATION_SEED_OFFSET (same artifacts and settings, new clouds),
-    CALIBRATION_POINTS_PER_CLOUD points per cloud, per axis and per condition (learn/uncertainty.py)."""
-    from ..calibrate.dataset import build_table
+    simulated again with seed + CALIBRATION_SEED_OFFSET (same artifacts and settings, new clouds) and, with
+    ``surfaces``, the calibration surfaces (plates, grooves, a saddle, a filleted ridge at many tilts:
+    scan/calibration_surfaces.py) under the study's settings; CALIBRATION_POINTS_PER_CLOUD points per cloud, per
+    axis, per condition (learn/uncertainty.py) and per surface class (judge/surface_class.py). The shape domain
+    (card ``domain_shape``: mean curvature range and the (κmin, κmax) cells) comes from the same clouds."""
     from ..judge.features import STUDY_FEATURES
     from ..judge.inference import update_card
+    from ..learn.calibration_set import calibration_set
     from ..learn.families import get_profile
-    from ..learn.shape_domain import shape_domain_of_scans
-    from ..learn.uncertainty import calibrate
+    from ..learn.shape_domain import fit_principal_domain, fit_shape_domain
+    from ..learn.uncertainty import calibrate, fit_domain
+    from ..scan.calibration_surfaces import surface_campaign
+    from ..sim import simulate_scan
     from ..sim.campaign import study_campaign
 
     prof = get_profile(profile)
     cal_seed = seed + CALIBRATION_SEED_OFFSET
     items = study_campaign(seed=cal_seed, **dict(prof.campaign))
+    scanner = items[0].scanner if items else None
     scans = [it.simulate() for it in items]
-    table = build_table(scans, list(STUDY_FEATURES), max_points_per_cloud=CALIBRATION_POINTS_PER_CLOUD, seed=cal_seed)
+    labels: list[str] = []
+    if surfaces:
+        from ..scan.scanner import ScannerModel
+
+        sc = scanner or ScannerModel.load()
+        # micro (tests): every 13th setting of each surface, 3 of 27 spanning the three exposures
+        surf = surface_campaign(sc, cal_seed, stride=13 if profile == "micro" else 1)
+        scans += [simulate_scan(a, st, scanner=sc, seed=sd) for a, st, sd, _ in surf]
+        labels += [f"calibration surfaces seed {cal_seed}: {lab}" for *_, lab in surf]
+    cs = calibration_set(scans, list(STUDY_FEATURES), max_points_per_cloud=CALIBRATION_POINTS_PER_CLOUD,
+                         seed=cal_seed, scanner=scanner)
+    t = cs.table
     labels = [f"campaign seed {cal_seed} item {i}: {c['label']} {c['artifact']['kind']}"
-              for i, c in enumerate(table.clouds)]
-    block = calibrate(model_dir, table.X, table.y, table.cloud_id, cloud_labels=labels)
-    # The calibration clouds are the training campaign's shapes: their curvature range is the shape domain.
-    shape = shape_domain_of_scans(scans, items[0].scanner if items else None)
-    update_card(model_dir, domain_shape=shape)
-    print(f"calibrated on {len(items)} clouds: multipliers {[round(k, 3) for k in block['multiplier']]}; "
-          f"shape domain: mean curvature {shape['lo']:.4f} to {shape['hi']:.4f} /mm")
+              for i, c in enumerate(t.clouds[: len(items)])] + labels
+    block = calibrate(model_dir, t.X, t.y, t.cloud_id, cloud_labels=labels,
+                      surface_class=cs.surface_class if surfaces else None)
+    shape = fit_shape_domain(cs.mean_curvature)
+    extra: dict[str, Any] = {}
+    if surfaces:
+        shape["principal"] = fit_principal_domain(cs.principal)
+        # U is calibrated on these rows without any widening: the multivariate domain (where U is widened and the
+        # point flagged) is theirs, the training campaign's shapes and the surfaces', not the training rows' alone
+        extra["domain_mv"] = {**fit_domain(t.X), "fitted_on": "the calibration rows (training campaign simulated "
+                              "again and the calibration surfaces), where U is calibrated"}
+    update_card(model_dir, domain_shape=shape, **extra)
+    print(f"calibrated on {len(scans)} clouds: multipliers {[round(k, 3) for k in block['multiplier']]}; "
+          f"shape domain: mean curvature {shape['lo']:.4f} to {shape['hi']:.4f} /mm"
+          + (f", {len(shape['principal']['cells'])} (kmin, kmax) cells" if surfaces else ""))
 
 
 def run_export_default(args: argparse.Namespace) -> int:
@@ -142,7 +172,9 @@ def run_export_default(args: argparse.Namespace) -> int:
 
     target = default_model_dir() if args.replace_packaged else Path(args.out)
     with tempfile.TemporaryDirectory() as tmp:
-        if args.from_dir:
+        if args.from_packaged:
+            src = default_model_dir()
+        elif args.from_dir:
             src = Path(args.from_dir) / "models" / DEFAULT_FAMILY
         else:
             from ..learn.study import load_data, run_study
@@ -158,7 +190,7 @@ def run_export_default(args: argparse.Namespace) -> int:
         shutil.copytree(src, staged)  # calibration writes the card: never into the --from directory
         src = staged
         if not args.no_calibrate:
-            _calibrate_default(src, args.profile, args.seed)
+            _calibrate_default(src, args.profile, args.seed, surfaces=not args.no_surfaces)
         ms = ModelSet.load(src)  # validates before replacing the shipped model
         if target.exists():
             shutil.rmtree(target)

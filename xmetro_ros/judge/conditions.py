@@ -8,6 +8,12 @@ clouds — and the card's ``uncertainty.conditional`` block holds them; a point'
 A condition the calibration saw too few points of has no multiplier: those points get no U (NaN, flag
 NO_UNCERTAINTY) rather than a guess. Cards without the block keep one multiplier per axis.
 
+A card calibrated on surfaces of every class (flat, convex, concave, saddle: :mod:`.surface_class`) also holds the
+multipliers per surface class (``conditional.by_surface``): the table of :func:`multiplier_table` then stacks
+(1 + classes) blocks of the conditions' rows, block 0 over all classes (points without a class: unorganized scans,
+scan borders) and block 1 + k for class k; a class's condition with too few calibration points takes block 0's
+multiplier.
+
 Units: degrees (incidence, from the ``Inc`` feature = cos of the angle between the normal and the laser direction),
 milliseconds (exposure, the ``exposure_time`` feature).
 """
@@ -63,22 +69,37 @@ def condition_index(X: np.ndarray, feature_names: Sequence[str], incidence_edges
     return np.where(np.isfinite(cos_i) & np.isfinite(exp), idx, -1).astype(np.int64)
 
 
+def _cells(rows: list) -> np.ndarray:
+    return np.array([[np.nan if m is None else float(m) for m in cell] for cell in rows], np.float64)
+
+
 def multiplier_table(block: dict[str, Any]) -> np.ndarray:
-    """(cells, 3) float64 of the block's conditional multipliers, NaN where a condition has none."""
-    return np.array([[np.nan if m is None else float(m) for m in cell] for cell in block["conditional"]["multiplier"]],
-                    np.float64)
+    """(blocks × cells, 3) float64 of the block's conditional multipliers, NaN where a condition has none: one block
+    of cells without ``by_surface``, else 1 + classes blocks (module doc; a class's missing cell takes block 0's)."""
+    cond = block["conditional"]
+    base = _cells(cond["multiplier"])
+    by = cond.get("by_surface")
+    if not by:
+        return base
+    per = [_cells(rows) for rows in by["multiplier"]]
+    return np.concatenate([base, *(np.where(np.isnan(t), base, t) for t in per)])
 
 
-def row_multipliers(block: dict[str, Any], X: np.ndarray, feature_names: Sequence[str]) -> np.ndarray:
-    """(M, 3) float64 multiplier of each row: its condition's (``block["conditional"]``), NaN for a condition the
-    calibration had too few points of or a row without a condition; the per-axis multipliers for every row when
-    the block has no conditional part."""
+def row_multipliers(block: dict[str, Any], X: np.ndarray, feature_names: Sequence[str],
+                    surface_class: np.ndarray | None = None) -> np.ndarray:
+    """(M, 3) float64 multiplier of each row: its condition's (``block["conditional"]``) — of its surface class
+    (``surface_class`` (M,) int, −1 none) when the block has them — NaN for a condition the calibration had too few
+    points of or a row without a condition; the per-axis multipliers for every row when the block has no
+    conditional part."""
     glob = np.asarray(block["multiplier"], np.float64)
     cond = block.get("conditional")
     if not cond:
         return np.broadcast_to(glob, (len(X), len(glob)))
     table = multiplier_table(block)
     idx = condition_index(X, feature_names, cond["incidence_edges_deg"], cond["exposure_edges_ms"])
+    if surface_class is not None and cond.get("by_surface"):
+        n_cells = len(cond["multiplier"])
+        idx = np.where(idx >= 0, idx + (np.asarray(surface_class, np.int64) + 1) * n_cells, -1)
     out = np.full((len(X), table.shape[1]), np.nan)
     ok = idx >= 0
     out[ok] = table[idx[ok]]

@@ -28,10 +28,11 @@ bit   name                   set when
                              reason (only where the point is also domain_multivariate)
 4096  domain_multivariate    why out_of_domain is set (with it): the multivariate domain distance (card
                              ``domain_mv``) exceeds 1 + ``domain_margin``. U is widened: multiplied by the distance
-8192  domain_shape           why out_of_domain is set (with it): the surface's mean curvature lies outside the
-                             calibration shapes (card ``domain_shape``) widened by ``domain_margin`` × range, e.g. a
-                             concave pocket or a sharp edge; organized scans only. U is not widened: the interval is
-                             not vouched for
+8192  domain_shape           why out_of_domain is set (with it): the surface's shape lies outside the calibration
+                             shapes (card ``domain_shape``): its (κmin, κmax) in none of the calibration's cells when
+                             the card has them, else its mean curvature outside their range widened by
+                             ``domain_margin`` × range, e.g. a concave pocket or a sharp edge; organized scans only.
+                             U is not widened: the interval is not vouched for
 ====  =====================  =====================================================================================
 
 Decision classes (:func:`point_decisions`): per predicted point, on the norm |d| of the predicted error with

@@ -326,14 +326,15 @@ class ModelSet:
 
         def block(i: int) -> None:
             lo, hi = bounds[i]
-            z = X[lo:hi] @ w
+            # numpy's own sum-of-products loop, not BLAS: a row's bits do not depend on how many rows come with it
+            # (OpenBLAS picks other kernels for 1, 3 or 137 rows on some CPUs: the recommender's batch and a lone
+            # cloud then differed in the last bit); as fast here (28 against 31 ms for 170k rows)
+            z = np.einsum("ij,jk->ik", X[lo:hi], w)
             z -= b
             out[lo:hi] = np.sqrt(np.einsum("ij,ij->i", z, z))
 
-        # Row blocks side by side on the model set's threads, each product on one BLAS thread: OpenBLAS splits this
-        # small (M, F) × (F, F) product over its own threads, which on the shared 2-core machine (the node runs
-        # with OPENBLAS_NUM_THREADS=2) took 20-100 ms instead of ~1 ms. Each output is the same dot product
-        # whatever the split: the same bits (test_inference_sets.py).
+        # Row blocks side by side on the model set's threads (a BLAS-free product; the guard stays for numpy
+        # builds whose einsum would call BLAS): the same bits whatever the split (test_inference_sets.py).
         with _one_blas_thread():
             parallel_for(block, len(bounds), self.threads)
         return out
@@ -505,16 +506,25 @@ class ModelSet:
         return (multiplier_table(self.card["uncertainty"]), cos_e, exp_e, names.index("Inc"),
                 names.index("exposure_time"))
 
-    def multipliers(self, X: np.ndarray) -> np.ndarray:
+    @property
+    def by_surface(self) -> bool:
+        """True when U is calibrated per surface class too (card ``uncertainty.conditional.by_surface``): the judge
+        then gives :meth:`predict_with_uncertainty` each point's class (:mod:`.surface_class`)."""
+        return bool(((self.card.get("uncertainty") or {}).get("conditional") or {}).get("by_surface"))
+
+    def multipliers(self, X: np.ndarray, surface_class: np.ndarray | None = None) -> np.ndarray:
         """The conformal multiplier of each feature row and axis: (3,) for a card calibrated per axis only, (M, 3)
-        for one calibrated per condition (incidence × exposure, :mod:`.conditions`; NaN: no U for that row)."""
+        for one calibrated per condition (incidence × exposure, :mod:`.conditions`, and the row's surface class
+        when given and calibrated; NaN: no U for that row)."""
         block = self.card["uncertainty"]
         if not block.get("conditional"):
             return np.asarray(block["multiplier"], np.float64)
-        return row_multipliers(block, X, self.feature_names)
+        return row_multipliers(block, X, self.feature_names, surface_class)
 
-    def _expand(self, sig: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(U (M, 3), domain distance (M,)) from σ̂ (M, 3) and the feature rows X (M, F): the one formula of U."""
+    def _expand(self, sig: np.ndarray, X: np.ndarray, surface_class: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """(U (M, 3), domain distance (M,)) from σ̂ (M, 3) and the feature rows X (M, F) (and their surface classes):
+        the one formula of U."""
         if not self.calibrated:
             raise ModelLoadError(f"model set {self.id!r} has no uncertainty calibration (card 'uncertainty')")
         dist = self.domain_distance(X)
@@ -522,8 +532,9 @@ class ModelSet:
         if self._conditions is not None:  # the row's condition found and its multiplier applied in one pass
             table, cos_e, exp_e, i_inc, i_exp = self._conditions
             Xa = np.asarray(X)
+            cls = surface_class if self.by_surface else None
             return _expand_u_cond(np.asarray(sig, np.float64), floor, table, cos_e, exp_e, Xa[:, i_inc], Xa[:, i_exp],
-                                  dist), dist
+                                  dist, cls), dist
         mult = self.multipliers(X)
         # (σ̂ + floor) × mult × max(1, distance), in that order (NaN distance: no widening), one compiled pass
         return _expand_u(np.asarray(sig, np.float64), floor, mult, dist), dist
@@ -540,17 +551,19 @@ class ModelSet:
         U, _ = self._expand(sig.reshape(k * n, 3), sets.reshape(k * n, f))
         return U.reshape(k, n, 3)
 
-    def predict_with_uncertainty(self, X: np.ndarray) -> UncertainPrediction:
+    def predict_with_uncertainty(self, X: np.ndarray, surface_class: np.ndarray | None = None
+                                 ) -> UncertainPrediction:
         """Errors and their expanded uncertainty U (mm) for the feature rows X (M, F) of ONE cloud.
 
-        U = the card's conformal multiplier (per axis, or per condition: :meth:`multipliers`) × (σ̂ + its
+        U = the card's conformal multiplier (per axis, or per condition: :meth:`multipliers`; per surface class too
+        when the card has them and ``surface_class`` (M,) int8 gives each row's, −1 for none) × (σ̂ + its
         sigma_floor_mm), times max(1, domain distance) outside the multivariate domain. Raises ModelLoadError when
         the model set has no calibration."""
         if not self.calibrated:
             raise ModelLoadError(f"model set {self.id!r} has no uncertainty calibration (card 'uncertainty')")
         X = self._check_X(X)
         err, sig = self.predict_with_sigma(X)
-        U, dist = self._expand(sig, X)
+        U, dist = self._expand(sig, X, surface_class)
         return UncertainPrediction(err, U, sig, dist, self.out_of_domain_mv(X, dist))
 
     @cached_property
@@ -572,6 +585,17 @@ class ModelSet:
         if not d:
             return None
         return float(d["lo"]), float(d["hi"]), float(d.get("radius_mm", 1.0))
+
+    @cached_property
+    def principal_domain(self) -> tuple[np.ndarray, float, float] | None:
+        """(occupied cells (n, n) bool, lo, bin) in 1/mm of the (κmin, κmax) plane the calibration clouds covered
+        (card ``domain_shape.principal``, :mod:`.surface_class`), or None when the card has none."""
+        d = (self.card.get("domain_shape") or {}).get("principal")
+        if not d:
+            return None
+        from .surface_class import principal_domain_grid
+
+        return principal_domain_grid(d)
 
     @property
     def has_sets(self) -> bool:

@@ -30,6 +30,7 @@ from ..scan.scan import Scan
 from ..scan.scanner import ScannerModel, SettingsError
 from . import flags as fl
 from .point_flags import NO_DECISION, base_flags, kept_point_flags, point_masks, scatter_kept
+from .surface_class import out_of_principal_domain, surface_class
 
 __all__ = [
     "NO_DECISION",
@@ -234,8 +235,8 @@ def warm_up() -> float:
 
     t = time.perf_counter()
     grid_kernels.warm_up()
-    curvature.grid_mean_curvature(np.zeros((1, 3)), np.ones((1, 3), np.float32), np.zeros(1, np.int64), (2, 2), 1.0,
-                                  1.0)
+    for fn in (curvature.grid_mean_curvature, curvature.grid_principal_curvatures):
+        fn(np.zeros((1, 3)), np.ones((1, 3), np.float32), np.zeros(1, np.int64), (2, 2), 1.0, 1.0)
     from ..preprocess import knn_grid
     from ..preprocess.knn import _knn_normals
 
@@ -435,8 +436,13 @@ class ScanHandler:
         # U comes from the same call as the errors: a PointNet point's prediction depends on its set.
         unc_note = ""
         mv_ood = None
+        # the two principal curvatures when the card uses them: U per surface class, the shape domain's cells
+        kappa = self._principal_curvatures(prepared, model)
         if getattr(model, "calibrated", False):
-            up = model.predict_with_uncertainty(X)
+            if kappa is not None and getattr(model, "by_surface", False):
+                up = model.predict_with_uncertainty(X, surface_class=surface_class(kappa))
+            else:
+                up = model.predict_with_uncertainty(X)
             pred = np.asarray(up.errors, dtype=np.float64)
             U = np.asarray(up.U, dtype=np.float64)
             if model.card.get("domain_mv"):  # (U is widened from distance 1 on, whatever the margin)
@@ -454,7 +460,7 @@ class ScanHandler:
         # the multivariate domain complements the per-feature range check; the shape one (a surface the
         # calibration never covered: concave, sharp) does not widen U. N·L and N·V are the features' shared
         # intermediates (already computed when the model uses Inc/ViewAng).
-        shape_ood = self._shape_out_of_domain(prepared, model)
+        shape_ood = self._shape_out_of_domain(prepared, model, kappa)
         kept_flags, cls = kept_point_flags(
             pred, U, ctx.n_dot_l(), ctx.n_dot_v(), p.grazing_incidence_deg, p.grazing_view_deg, X, lo, hi,
             p.domain_margin, prepared.normal_quality, p.normal_quality_min, p.tolerance_mm, p.decision_rule,
@@ -522,10 +528,24 @@ class ScanHandler:
                         decisions=decisions,
                         shape_out_of_domain=None if res.shape_out_of_domain is None else res.shape_out_of_domain[m])
 
-    def _shape_out_of_domain(self, prepared: Any, model: Any) -> np.ndarray | None:
-        """(M,) bool: kept points whose mean curvature lies outside the model's shape domain widened by
-        ``domain_margin`` (card ``domain_shape``); None when the card has none. NaN curvature (unorganized scan,
-        scan border) is not flagged."""
+    @staticmethod
+    def _principal_curvatures(prepared: Any, model: Any) -> np.ndarray | None:
+        """(M, 2) principal curvatures (κmin, κmax) 1/mm of the kept points when the model's card uses them (U per
+        surface class, or a shape domain in the (κmin, κmax) plane), else None (not computed)."""
+        if not (getattr(model, "by_surface", False) or getattr(model, "principal_domain", None) is not None):
+            return None
+        from ..preprocess.curvature import principal_curvatures
+
+        return principal_curvatures(prepared)
+
+    def _shape_out_of_domain(self, prepared: Any, model: Any, kappa: np.ndarray | None = None) -> np.ndarray | None:
+        """(M,) bool: kept points whose shape lies outside the model's shape domain (card ``domain_shape``): their
+        (κmin, κmax) cell not among the calibration's (``kappa``, when the card has ``principal`` cells), else
+        their mean curvature outside its range widened by ``domain_margin``; None when the card has none. NaN
+        curvature (unorganized scan, scan border) is not flagged."""
+        grid = getattr(model, "principal_domain", None)
+        if grid is not None and kappa is not None:
+            return out_of_principal_domain(kappa, *grid)
         dom = getattr(model, "shape_domain", None)
         if dom is None:
             return None

@@ -167,8 +167,10 @@ def _expand_u_rows(sig: np.ndarray, floor: float, mult: np.ndarray, dist: np.nda
 
 @njit(**_PAR)
 def _expand_u_cond(sig: np.ndarray, floor: float, table: np.ndarray, cos_edges: np.ndarray, exp_edges: np.ndarray,
-                   cos_i: np.ndarray, expo: np.ndarray, dist: np.ndarray, out: np.ndarray) -> None:
+                   cos_i: np.ndarray, expo: np.ndarray, dist: np.ndarray, cls: np.ndarray, n_cells: int,
+                   out: np.ndarray) -> None:
     n_exp = exp_edges.shape[0] + 1
+    by_class = cls.shape[0] > 0
     for i in prange(sig.shape[0]):
         d = np.float64(dist[i])
         w = d if d > 1.0 else 1.0
@@ -187,23 +189,37 @@ def _expand_u_cond(sig: np.ndarray, floor: float, table: np.ndarray, cos_edges: 
             if e >= exp_edges[k]:
                 be += 1
         cell = bi * n_exp + be
+        if by_class:  # block 1 + class of the stacked table; −1 (no class): block 0
+            cell += (np.int64(cls[i]) + 1) * n_cells
         for j in range(sig.shape[1]):
             out[i, j] = (sig[i, j] + floor) * table[cell, j] * w
 
 
 def expand_u_conditional(sig: np.ndarray, floor: float, table: np.ndarray, cos_edges: np.ndarray,
-                         exp_edges: np.ndarray, cos_i: np.ndarray, expo: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    """U (M, A) as :func:`expand_u` with each row's multiplier looked up in ``table`` (cells, A) by its condition
+                         exp_edges: np.ndarray, cos_i: np.ndarray, expo: np.ndarray, dist: np.ndarray,
+                         surface_class: np.ndarray | None = None) -> np.ndarray:
+    """U (M, A) as :func:`expand_u` with each row's multiplier looked up in ``table`` by its condition
     (judge/conditions.py: incidence bin from ``cos_i`` against ``cos_edges``, exposure bin from ``expo`` against
-    ``exp_edges``), in the same pass: the same bits as expand_u with conditions.row_multipliers' (M, A) array."""
+    ``exp_edges``), in the same pass: the same bits as expand_u with conditions.row_multipliers' (M, A) array.
+    ``table`` (cells, A), or (blocks × cells, A) stacked per surface class (conditions.multiplier_table) with
+    ``surface_class`` (M,) int8 (−1: no class, block 0); without it block 0 serves every row."""
     if not (sig.shape[0] == dist.shape[0] == cos_i.shape[0] == expo.shape[0]) or table.shape[1] != sig.shape[1]:
         raise ValueError(f"expand_u_conditional: sigma {sig.shape}, table {table.shape}, distance {dist.shape}")
-    if table.shape[0] != (len(cos_edges) + 1) * (len(exp_edges) + 1):
+    n_cells = (len(cos_edges) + 1) * (len(exp_edges) + 1)
+    if table.shape[0] % n_cells:
         raise ValueError(f"expand_u_conditional: {table.shape[0]} cells for {len(cos_edges) + 1} incidence and "
                          f"{len(exp_edges) + 1} exposure bins")
+    cls: np.ndarray = np.zeros(0, np.int8)
+    if surface_class is not None:
+        cls = np.ascontiguousarray(surface_class, np.int8)
+        if cls.shape != (sig.shape[0],):
+            raise ValueError(f"expand_u_conditional: surface_class {cls.shape} for {sig.shape[0]} rows")
+        if len(cls) and (int(cls.min()) < -1 or (int(cls.max()) + 2) * n_cells > table.shape[0]):
+            raise ValueError(f"expand_u_conditional: surface classes {int(cls.min())}..{int(cls.max())} for "
+                             f"{table.shape[0] // n_cells} blocks of the table")
     out = np.empty(sig.shape)
     _expand_u_cond(sig, float(floor), np.ascontiguousarray(table, np.float64), np.asarray(cos_edges, np.float64),
-                   np.asarray(exp_edges, np.float64), cos_i, expo, dist, out)
+                   np.asarray(exp_edges, np.float64), cos_i, expo, dist, cls, n_cells, out)
     return out
 
 
@@ -242,3 +258,5 @@ def warm_up() -> None:
         expand_u(out[:, :2], 0.0, np.ones((2, 2)), d)
         for c in (np.zeros(2, np.float32), np.zeros(2)):
             expand_u_conditional(out[:, :2], 0.0, np.ones((4, 2)), np.zeros(1), np.zeros(1), c, c, d)
+            expand_u_conditional(out[:, :2], 0.0, np.ones((8, 2)), np.zeros(1), np.zeros(1), c, c, d,
+                                 np.zeros(2, np.int8))

@@ -16,9 +16,12 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["SHAPE_QUANTILE", "fit_shape_domain", "shape_domain_of_scans"]
+__all__ = ["PRINCIPAL_BIN_PER_MM", "PRINCIPAL_LIMIT_PER_MM", "SHAPE_QUANTILE", "fit_principal_domain",
+           "fit_shape_domain", "shape_domain_of_scans"]
 
 SHAPE_QUANTILE = 0.001  # as the multivariate domain: 0.1 % of the calibration points fall outside on each side
+PRINCIPAL_BIN_PER_MM = 0.01  # cell of the (κmin, κmax) plane: the curvature noise of a plane at 0.1 ms (~±0.015)
+PRINCIPAL_LIMIT_PER_MM = 0.6  # the plane's extent ±: 1/0.6 = 1.7 mm radius, below which 1 mm apart reads nothing
 
 
 def fit_shape_domain(curvatures: Iterable[np.ndarray], quantile: float = SHAPE_QUANTILE) -> dict[str, Any]:
@@ -36,6 +39,46 @@ def fit_shape_domain(curvatures: Iterable[np.ndarray], quantile: float = SHAPE_Q
             "quantile": float(quantile), "n": len(c),
             "rule": "a point whose curvature lies outside [lo - m, hi + m], m = domain_margin * (hi - lo), is "
                     "OUT_OF_DOMAIN (U not widened); unorganized scans are not checked"}
+
+
+def fit_principal_domain(kappas: Iterable[np.ndarray], quantile: float = SHAPE_QUANTILE,
+                         bin_per_mm: float = PRINCIPAL_BIN_PER_MM, limit: float = PRINCIPAL_LIMIT_PER_MM
+                         ) -> dict[str, Any]:
+    """The ``principal`` part of the card's ``domain_shape`` block from the principal curvatures (κmin, κmax) (N, 2)
+    in 1/mm of the calibration clouds' points: the cells of the (κmin, κmax) plane (``bin_per_mm`` wide, over
+    ±``limit``) that the calibration points occupy, less the sparsest cells holding ``quantile`` of the points
+    together (isolated noise), then one cell around every kept cell (the margin). A point is in the shape domain
+    when its cell is one of them (judge/surface_class.py). Raises ValueError without finite values."""
+    n_bins = round(2 * limit / bin_per_mm)
+    counts = np.zeros((n_bins, n_bins), np.int64)
+    n = 0
+    for k in kappas:
+        k = np.asarray(k, np.float64).reshape(-1, 2)
+        k = k[np.isfinite(k).all(axis=1)]
+        n += len(k)
+        ij = np.floor((k + limit) / bin_per_mm).astype(np.int64)
+        ij = ij[((ij >= 0) & (ij < n_bins)).all(axis=1)]
+        np.add.at(counts, (ij[:, 0], ij[:, 1]), 1)
+    if n == 0:
+        raise ValueError("no finite principal curvature: the shape domain needs organized calibration scans")
+    flat = counts.reshape(-1)
+    order = np.argsort(flat, kind="stable")
+    drop = order[np.cumsum(flat[order]) <= quantile * n]  # the sparsest cells, together ≤ quantile of the points
+    keep = flat > 0
+    keep[drop] = False
+    keep = keep.reshape(n_bins, n_bins)
+    grown = keep.copy()  # one cell around each kept cell
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            grown |= np.roll(np.roll(np.pad(keep, 1), di, 0), dj, 1)[1:-1, 1:-1]
+    cells = np.argwhere(grown)
+    return {"measure": "principal curvatures (kmin, kmax) 1/mm from normals 1 mm apart on the scan grid "
+                       "(xmetro_ros.preprocess.curvature.grid_principal_curvatures)",
+            "lo_per_mm": -float(limit), "bin_per_mm": float(bin_per_mm), "n_bins": n_bins,
+            "cells": cells.tolist(), "n": int(n), "quantile": float(quantile),
+            "rule": "a point whose (kmin, kmax) cell, floor((k - lo) / bin), is not among cells is OUT_OF_DOMAIN "
+                    "(domain_shape; U not widened); the cells are those the calibration points occupy less the "
+                    "sparsest holding quantile of them, grown by one cell; domain_margin does not apply"}
 
 
 def shape_domain_of_scans(scans: Iterable[Any], scanner: Any = None, quantile: float = SHAPE_QUANTILE

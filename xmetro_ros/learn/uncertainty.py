@@ -64,10 +64,11 @@ def fit_domain(X_train: np.ndarray, quantile: float = DOMAIN_QUANTILE) -> dict[s
             "widening": "outside (distance > threshold) U is multiplied by distance / threshold"}
 
 
-def predict_clouds(ms: ModelSet, X: np.ndarray, cloud_id: np.ndarray, with_u: bool = True
-                   ) -> dict[str, np.ndarray]:
+def predict_clouds(ms: ModelSet, X: np.ndarray, cloud_id: np.ndarray, with_u: bool = True,
+                   surface_class: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Published predictions for rows of several clouds, each cloud on its own (its rows form the sets, in row
-    order). Returns errors, sigma (and U, out_of_domain, domain_distance with ``with_u``), rows aligned with X."""
+    order); U with ``surface_class`` (the rows' classes) per class when the card is calibrated so. Returns errors,
+    sigma (and U, out_of_domain, domain_distance with ``with_u``), rows aligned with X."""
     X = np.asarray(X, np.float32)
     cid = np.asarray(cloud_id)
     out: dict[str, np.ndarray] = {"errors": np.full((len(X), 3), np.nan), "sigma": np.full((len(X), 3), np.nan)}
@@ -76,8 +77,9 @@ def predict_clouds(ms: ModelSet, X: np.ndarray, cloud_id: np.ndarray, with_u: bo
                    domain_distance=np.full(len(X), np.nan))
     for c in np.unique(cid):
         rows = np.flatnonzero(cid == c)
+        cls = None if surface_class is None else np.asarray(surface_class)[rows]
         if with_u:
-            r = ms.predict_with_uncertainty(X[rows])
+            r = ms.predict_with_uncertainty(X[rows], surface_class=cls)
             out["errors"][rows], out["sigma"][rows], out["U"][rows] = r.errors, r.sigma, r.U
             out["out_of_domain"][rows], out["domain_distance"][rows] = r.out_of_domain, r.domain_distance
         else:
@@ -123,28 +125,10 @@ def cross_conformal_by_cloud(y: np.ndarray, pred: np.ndarray, sigma: np.ndarray,
     return out
 
 
-def conditional_multipliers(X: np.ndarray, feature_names: list[str], res: np.ndarray, sig: np.ndarray,
-                            ok: np.ndarray, confidence: float = 0.95, envelope: int = ENVELOPE_BINS,
-                            incidence_edges: tuple[float, ...] = INCIDENCE_EDGES_DEG) -> dict[str, Any] | None:
-    """Mondrian split-conformal multipliers per calibration condition (judge/conditions.py: incidence 10° bins ×
-    the exposure levels of the calibration rows): ``{"incidence_edges_deg", "exposure_edges_ms", "multiplier"
-    (cell → [x, y, z] or None), "n" (cell → points per axis), "min_points"}``; None when the features lack Inc
-    or exposure_time. ``res`` (M, 3) residuals y − ŷ, ``sig`` (M, 3) σ̂ + floor, ``ok`` (M, 3) usable rows per axis.
-    A cell with fewer than MIN_POINTS usable points on an axis gets None there: no U for such points.
-
-    ``envelope``: a cell's multiplier is the largest of its own and those of the ``envelope`` incidence bins on
-    either side (same exposure). The spread of an axis' error at a given incidence depends on the artifact's
-    curvature too (near normal incidence the x error of a sphere is a tiny projection): a cell calibrated on the
-    campaign's shapes alone covered 91 % of new shapes' points at 0-10° (x), its neighbours' maximum 97 %."""
-    if not set(CONDITION_FEATURES) <= set(feature_names):
-        return None
-    exp = np.asarray(X[:, list(feature_names).index("exposure_time")], np.float64)
-    levels = np.unique(exp[np.isfinite(exp)])
-    if len(levels) > 6:  # a continuous range of exposures: three bins of equal counts
-        levels = np.quantile(exp[np.isfinite(exp)], [1 / 6, 1 / 2, 5 / 6])
-    ie, ee = [float(a) for a in incidence_edges], exposure_edges(levels)
-    cell = condition_index(X, feature_names, ie, ee)
-    n_cells = (len(ie) - 1) * (len(ee) - 1)
+def _cell_multipliers(cell: np.ndarray, n_cells: int, n_inc: int, res: np.ndarray, sig: np.ndarray, ok: np.ndarray,
+                      confidence: float, envelope: int) -> tuple[list, list, list]:
+    """(multipliers after the incidence envelope, own multipliers, counts), cell → [x, y, z], of the rows in each
+    condition ``cell`` (M,); None where a cell has fewer than MIN_POINTS usable rows on an axis."""
     mult: list[list[float | None]] = []
     counts: list[list[int]] = []
     for c in range(n_cells):
@@ -158,30 +142,76 @@ def conditional_multipliers(X: np.ndarray, feature_names: list[str], res: np.nda
         mult.append(row_m)
         counts.append(row_n)
     own = [list(r) for r in mult]
-    ne = len(ee) - 1
+    ne = n_cells // n_inc
     for c in range(n_cells):
         i, e = divmod(c, ne)
         for a in range(3):
             if own[c][a] is None:
                 continue
-            near = [own[j * ne + e][a] for j in range(max(0, i - envelope), min(len(ie) - 1, i + envelope + 1))]
+            near = [own[j * ne + e][a] for j in range(max(0, i - envelope), min(n_inc, i + envelope + 1))]
             mult[c][a] = max(m for m in near if m is not None)
-    return {"by": "incidence angle acos(Inc) in 10 deg bins x exposure_time levels (Mondrian conformal)",
-            "incidence_edges_deg": ie, "exposure_edges_ms": ee, "exposure_levels_ms": levels.tolist(),
-            "multiplier": mult, "own_multiplier": own, "envelope_bins": int(envelope), "n": counts,
-            "min_points": MIN_POINTS,
-            "cell": "incidence bin * (len(exposure_edges_ms) - 1) + exposure bin"}
+    return mult, own, counts
+
+
+def conditional_multipliers(X: np.ndarray, feature_names: list[str], res: np.ndarray, sig: np.ndarray,
+                            ok: np.ndarray, confidence: float = 0.95, envelope: int = ENVELOPE_BINS,
+                            incidence_edges: tuple[float, ...] = INCIDENCE_EDGES_DEG,
+                            surface_class: np.ndarray | None = None) -> dict[str, Any] | None:
+    """Mondrian split-conformal multipliers per calibration condition (judge/conditions.py: incidence 10° bins ×
+    the exposure levels of the calibration rows): ``{"incidence_edges_deg", "exposure_edges_ms", "multiplier"
+    (cell → [x, y, z] or None), "n" (cell → points per axis), "min_points"}``; None when the features lack Inc
+    or exposure_time. ``res`` (M, 3) residuals y − ŷ, ``sig`` (M, 3) σ̂ + floor, ``ok`` (M, 3) usable rows per axis.
+    A cell with fewer than MIN_POINTS usable points on an axis gets None there: no U for such points.
+
+    ``envelope``: a cell's multiplier is the largest of its own and those of the ``envelope`` incidence bins on
+    either side (same exposure). The spread of an axis' error at a given incidence depends on the artifact's
+    curvature too (near normal incidence the x error of a sphere is a tiny projection): a cell calibrated on the
+    campaign's shapes alone covered 91 % of new shapes' points at 0-10° (x), its neighbours' maximum 97 %.
+
+    ``surface_class`` (M,) int (judge/surface_class.py, −1: none): the same multipliers per surface class as well
+    (block ``by_surface``; a class's cell with too few points is None there and takes the all-class cell's)."""
+    if not set(CONDITION_FEATURES) <= set(feature_names):
+        return None
+    exp = np.asarray(X[:, list(feature_names).index("exposure_time")], np.float64)
+    levels = np.unique(exp[np.isfinite(exp)])
+    if len(levels) > 6:  # a continuous range of exposures: three bins of equal counts
+        levels = np.quantile(exp[np.isfinite(exp)], [1 / 6, 1 / 2, 5 / 6])
+    ie, ee = [float(a) for a in incidence_edges], exposure_edges(levels)
+    cell = condition_index(X, feature_names, ie, ee)
+    n_inc = len(ie) - 1
+    n_cells = n_inc * (len(ee) - 1)
+    mult, own, counts = _cell_multipliers(cell, n_cells, n_inc, res, sig, ok, confidence, envelope)
+    out = {"by": "incidence angle acos(Inc) in 10 deg bins x exposure_time levels (Mondrian conformal)",
+           "incidence_edges_deg": ie, "exposure_edges_ms": ee, "exposure_levels_ms": levels.tolist(),
+           "multiplier": mult, "own_multiplier": own, "envelope_bins": int(envelope), "n": counts,
+           "min_points": MIN_POINTS,
+           "cell": "incidence bin * (len(exposure_edges_ms) - 1) + exposure bin"}
+    if surface_class is not None:
+        from ..judge.surface_class import FLAT_CURVATURE_PER_MM, SURFACE_CLASSES
+        from ..preprocess.curvature import RADIUS_MM
+
+        cls = np.asarray(surface_class, np.int64)
+        per = [_cell_multipliers(np.where(cls == k, cell, -1), n_cells, n_inc, res, sig, ok, confidence, envelope)
+               for k in range(len(SURFACE_CLASSES))]
+        out["by_surface"] = {
+            "classes": list(SURFACE_CLASSES), "flat_curvature_per_mm": FLAT_CURVATURE_PER_MM, "radius_mm": RADIUS_MM,
+            "measure": "principal curvatures from normals radius_mm apart on the scan grid "
+                       "(xmetro_ros.preprocess.curvature, xmetro_ros.judge.surface_class)",
+            "multiplier": [p[0] for p in per], "own_multiplier": [p[1] for p in per], "n": [p[2] for p in per],
+            "fallback": "a class's condition with fewer than min_points points (None) takes the all-class multiplier"}
+    return out
 
 
 def calibrate(model_dir: str | Path, X: np.ndarray, y: np.ndarray, cloud_id: np.ndarray,
               confidence: float = 0.95, cloud_labels: list | None = None, write: bool = True,
               sigma_floor_mm: float = SIGMA_FLOOR_MM, conditional: bool = True,
-              envelope: int = ENVELOPE_BINS) -> dict[str, Any]:
+              envelope: int = ENVELOPE_BINS, surface_class: np.ndarray | None = None) -> dict[str, Any]:
     """Split-conformal calibration of the model set in ``model_dir`` on calibration clouds (rows X (M, F),
     measured errors y (M, 3) mm, cloud ids): writes the card's ``uncertainty`` block (unless ``write`` False) and
     returns it. The clouds must be held out from training (the caller's split; their ids / labels are recorded).
     ``conditional``: also one multiplier per calibration condition (incidence × exposure, the block's
-    ``conditional`` part, :func:`conditional_multipliers` with ``envelope``), which U then uses.
+    ``conditional`` part, :func:`conditional_multipliers` with ``envelope``), which U then uses; with
+    ``surface_class`` (M,) (the rows' classes, judge/surface_class.py) per condition and surface class as well.
     """
     if not 0 < confidence < 1:
         raise ValueError(f"confidence must be in (0, 1), got {confidence}")
@@ -221,10 +251,12 @@ def calibrate(model_dir: str | Path, X: np.ndarray, y: np.ndarray, cloud_id: np.
     }
     if conditional:
         cond = conditional_multipliers(np.asarray(X), list(ms.feature_names), y - pred["errors"],
-                                       pred["sigma"] + sigma_floor_mm, oks, confidence, envelope=envelope)
+                                       pred["sigma"] + sigma_floor_mm, oks, confidence, envelope=envelope,
+                                       surface_class=surface_class)
         if cond is not None:
             block["conditional"] = cond
-            block["U"] = ("multiplier of the point's condition (conditional: incidence bin x exposure level; none: "
+            block["U"] = ("multiplier of the point's condition (conditional: incidence bin x exposure level"
+                          + (" x surface class" if "by_surface" in cond else "") + "; none: "
                           "no U) * (sigma_hat + sigma_floor_mm), times distance/threshold outside domain_mv")
     if write:
         update_card(model_dir, uncertainty=block)

@@ -28,7 +28,8 @@ from numba import njit, prange
 
 from ..compute import threads as _threads  # noqa: F401 - the threading layer, before any parallel kernel runs
 
-__all__ = ["RADIUS_MM", "grid_mean_curvature", "mean_curvature"]
+__all__ = ["RADIUS_MM", "grid_mean_curvature", "grid_principal_curvatures", "mean_curvature",
+           "principal_curvatures"]
 
 RADIUS_MM = 1.0  # neighbour distance: ~5 normal-fit spacings at the study's densities, well below the parts' features
 _MIN_DIRECTIONS = 3  # fewer valid neighbours (scan border, holes): NaN
@@ -70,6 +71,115 @@ def _curvature(rows: np.ndarray, P: np.ndarray, N: np.ndarray, kr: int, kc: int)
     return out
 
 
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
+def _principal(rows: np.ndarray, P: np.ndarray, N: np.ndarray, kr: int, kc: int) -> np.ndarray:
+    """(M, 2) principal curvatures (κmin, κmax) of the M points on the grid ``rows`` (as :func:`_curvature`): the
+    second fundamental form fitted by least squares to the eight directional normal curvatures."""
+    h, w = rows.shape
+    out = np.full((P.shape[0], 2), np.nan)
+    dro = np.array([kr, -kr, 0, 0, kr, -kr, kr, -kr])
+    dco = np.array([0, 0, kc, -kc, kc, -kc, -kc, kc])
+    for i in prange(h):  # each point written by its own row: any thread count, the same bits
+        for j in range(w):
+            a0 = rows[i, j]
+            if a0 < 0:
+                continue
+            n0, n1, n2 = np.float64(N[a0, 0]), np.float64(N[a0, 1]), np.float64(N[a0, 2])
+            nn = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+            if not nn > 0.0:
+                continue
+            n0, n1, n2 = n0 / nn, n1 / nn, n2 / nn
+            # tangent frame (e1, e2): e1 = n × x (n × y when n is near x), e2 = n × e1
+            if abs(n0) < 0.9:
+                t0, t1, t2 = 0.0, n2, -n1
+            else:
+                t0, t1, t2 = -n2, 0.0, n0
+            tn = np.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+            e10, e11, e12 = t0 / tn, t1 / tn, t2 / tn
+            e20, e21, e22 = n1 * e12 - n2 * e11, n2 * e10 - n0 * e12, n0 * e11 - n1 * e10
+            # normal equations of κ = A c² + 2B cs + C s² over the directions (c, s: the direction's cos, sin)
+            m00 = m01 = m02 = m11 = m12 = m22 = 0.0
+            r0 = r1 = r2 = 0.0
+            cnt = 0
+            for o in range(8):
+                a, b = i + dro[o], j + dco[o]
+                if a < 0 or a >= h or b < 0 or b >= w:
+                    continue
+                k = rows[a, b]
+                if k < 0:
+                    continue
+                d0 = P[k, 0] - P[a0, 0]
+                d1 = P[k, 1] - P[a0, 1]
+                d2 = P[k, 2] - P[a0, 2]
+                dd = d0 * d0 + d1 * d1 + d2 * d2
+                if not dd > 0.0:
+                    continue
+                kap = ((N[k, 0] - N[a0, 0]) * d0 + (N[k, 1] - N[a0, 1]) * d1 + (N[k, 2] - N[a0, 2]) * d2) / dd
+                u = d0 * e10 + d1 * e11 + d2 * e12
+                v = d0 * e20 + d1 * e21 + d2 * e22
+                uv = u * u + v * v
+                if not uv > 0.0:
+                    continue
+                f0, f1, f2 = u * u / uv, 2.0 * u * v / uv, v * v / uv
+                m00 += f0 * f0
+                m01 += f0 * f1
+                m02 += f0 * f2
+                m11 += f1 * f1
+                m12 += f1 * f2
+                m22 += f2 * f2
+                r0 += f0 * kap
+                r1 += f1 * kap
+                r2 += f2 * kap
+                cnt += 1
+            if cnt < _MIN_DIRECTIONS:
+                continue
+            # Cramer's rule on the symmetric 3 × 3 system; three directions on fewer than three lines: singular
+            c00 = m11 * m22 - m12 * m12
+            c01 = m02 * m12 - m01 * m22
+            c02 = m01 * m12 - m02 * m11
+            det = m00 * c00 + m01 * c01 + m02 * c02
+            if not abs(det) > 1e-9:
+                continue
+            c11 = m00 * m22 - m02 * m02
+            c12 = m01 * m02 - m00 * m12
+            c22 = m00 * m11 - m01 * m01
+            A = (c00 * r0 + c01 * r1 + c02 * r2) / det
+            B = (c01 * r0 + c11 * r1 + c12 * r2) / det
+            C = (c02 * r0 + c12 * r1 + c22 * r2) / det
+            hm = 0.5 * (A + C)
+            dm = np.sqrt(0.25 * (A - C) * (A - C) + B * B)
+            out[a0, 0] = hm - dm
+            out[a0, 1] = hm + dm
+    return out
+
+
+def _grid_rows(index: np.ndarray, shape: tuple[int, ...], m: int) -> np.ndarray:
+    """(H, W) int32 grid of row numbers of the M kept points (−1 where none)."""
+    h, w = int(shape[0]), int(shape[1])
+    rows = np.full(h * w, -1, dtype=np.int32)
+    rows[np.asarray(index, dtype=np.int64)] = np.arange(m, dtype=np.int32)
+    return rows.reshape(h, w)
+
+
+def grid_principal_curvatures(points: np.ndarray, normals: np.ndarray, index: np.ndarray, shape: tuple[int, ...],
+                              lateral_density: float, direction_density: float, radius_mm: float = RADIUS_MM
+                              ) -> np.ndarray:
+    """(M, 2) principal curvatures (κmin, κmax) in 1/mm of the M kept points (arguments as
+    :func:`grid_mean_curvature`): the normal curvatures along the eight grid directions fitted with the second
+    fundamental form κ(θ) = A cos²θ + 2B cosθ sinθ + C sin²θ in the point's tangent plane (least squares, at least
+    three directions on three lines); its eigenvalues H ∓ √(((A − C)/2)² + B²). Same sign convention as the mean
+    curvature (convex positive). Both near 0: a plane; both positive: convex (sphere; a cylinder has κmin ≈ 0);
+    both negative: concave; opposite signs: a saddle. NaN for unorganized scans and where the fit is singular.
+    Noise: the fit's spread √(…) is never negative, so on a plane at 0.1 ms |κ| reads ~0.01 /mm, not 0."""
+    m = len(index)
+    if len(shape) != 2 or m == 0:
+        return np.full((m, 2), np.nan)
+    kr = max(1, round(radius_mm * float(direction_density)))
+    kc = max(1, round(radius_mm * float(lateral_density)))
+    return _principal(_grid_rows(index, shape, m), np.ascontiguousarray(points, dtype=np.float64),
+                      np.ascontiguousarray(normals, dtype=np.float32), kr, kc)
+
+
 def grid_mean_curvature(points: np.ndarray, normals: np.ndarray, index: np.ndarray, shape: tuple[int, ...],
                         lateral_density: float, direction_density: float, radius_mm: float = RADIUS_MM) -> np.ndarray:
     """(M,) mean curvature (1/mm) of the M kept points (``points`` / ``normals`` (M, 3), flat grid ``index`` into
@@ -78,14 +188,19 @@ def grid_mean_curvature(points: np.ndarray, normals: np.ndarray, index: np.ndarr
     m = len(index)
     if len(shape) != 2 or m == 0:
         return np.full(m, np.nan)
-    h, w = int(shape[0]), int(shape[1])
-    rows = np.full(h * w, -1, dtype=np.int32)
-    rows[np.asarray(index, dtype=np.int64)] = np.arange(m, dtype=np.int32)
     kr = max(1, round(radius_mm * float(direction_density)))
     kc = max(1, round(radius_mm * float(lateral_density)))
     P = np.ascontiguousarray(points, dtype=np.float64)
     N = np.ascontiguousarray(normals, dtype=np.float32)
-    return _curvature(rows.reshape(h, w), P, N, kr, kc)
+    return _curvature(_grid_rows(index, shape, m), P, N, kr, kc)
+
+
+def principal_curvatures(prepared: Any, radius_mm: float = RADIUS_MM) -> np.ndarray:
+    """(M, 2) principal curvatures (κmin, κmax) in 1/mm of a :class:`~xmetro_ros.preprocess.Prepared` scan's kept
+    points (NaN when the scan is unorganized)."""
+    s = prepared.settings
+    return grid_principal_curvatures(prepared.points, prepared.normals, prepared.index, tuple(prepared.shape),
+                                     s.lateral_density, s.direction_density, radius_mm)
 
 
 def mean_curvature(prepared: Any, radius_mm: float = RADIUS_MM) -> np.ndarray:

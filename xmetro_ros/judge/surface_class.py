@@ -1,0 +1,75 @@
+"""The surface class of each point from its two principal curvatures: flat, convex, concave or saddle.
+
+Why: the spread of the scanner's error on a surface depends on its shape as well as on the incidence and the
+exposure (a wide flat face at short exposure is noisier relative to the model's σ̂ than a sphere seen at the same
+angle: docs/parts-generalisation.md). The calibration (:func:`xmetro_ros.learn.uncertainty.calibrate`) therefore
+computes the conformal multiplier per condition *and* per surface class when it is given the calibration points'
+classes, and the judge looks up each point's class here.
+
+Classes from (κmin, κmax) in 1/mm (:func:`xmetro_ros.preprocess.curvature.grid_principal_curvatures`, convex
+positive) and the threshold t = ``FLAT_CURVATURE_PER_MM``:
+
+* ``flat`` (0): |κmin| ≤ t and |κmax| ≤ t (radius of curvature ≥ 50 mm both ways);
+* ``convex`` (1): κmax > t and κmin ≥ −t (a sphere, a cylinder, an outer edge or fillet);
+* ``concave`` (2): κmin < −t and κmax ≤ t (a pocket, a groove, an inner fillet);
+* ``saddle`` (3): κmax > t and κmin < −t;
+* −1: no class (NaN curvature: an unorganized scan, a scan border, a singular fit); such points take the
+  multiplier calibrated over all classes.
+
+t = 0.02 /mm: above the curvature noise of a plane (90 % of a plane's points within ±0.015 /mm at 0.1 ms, the
+noisiest exposure), below the largest radius of the study's artifacts (1/27.5 mm = 0.036 /mm).
+
+The same (κmin, κmax) plane holds the shape part of the model's domain when the card has one
+(``domain_shape.principal``: the cells its calibration points occupy, :func:`out_of_principal_domain`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["FLAT_CURVATURE_PER_MM", "SURFACE_CLASSES", "out_of_principal_domain", "principal_domain_grid",
+           "surface_class"]
+
+SURFACE_CLASSES = ("flat", "convex", "concave", "saddle")
+FLAT_CURVATURE_PER_MM = 0.02
+
+
+def surface_class(kappa: np.ndarray, flat: float = FLAT_CURVATURE_PER_MM) -> np.ndarray:
+    """(M,) int8 class (index into SURFACE_CLASSES, −1: none) of the (M, 2) principal curvatures (κmin, κmax)
+    in 1/mm; ``flat`` the threshold t (1/mm)."""
+    k = np.asarray(kappa, np.float64).reshape(-1, 2)
+    lo, hi = k[:, 0], k[:, 1]
+    out = np.full(len(k), -1, np.int8)
+    with np.errstate(invalid="ignore"):
+        up, down = hi > flat, lo < -flat
+        ok = np.isfinite(lo) & np.isfinite(hi)
+        out[ok & ~up & ~down] = 0
+        out[ok & up & ~down] = 1
+        out[ok & ~up & down] = 2
+        out[ok & up & down] = 3
+    return out
+
+
+def principal_domain_grid(block: dict) -> tuple[np.ndarray, float, float]:
+    """(occupied (n, n) bool, lo, bin) in 1/mm of a card's ``domain_shape.principal`` block
+    (:func:`xmetro_ros.learn.shape_domain.fit_principal_domain`)."""
+    n = int(block["n_bins"])
+    grid = np.zeros((n, n), bool)
+    cells = np.asarray(block["cells"], np.int64).reshape(-1, 2)
+    grid[cells[:, 0], cells[:, 1]] = True
+    return grid, float(block["lo_per_mm"]), float(block["bin_per_mm"])
+
+
+def out_of_principal_domain(kappa: np.ndarray, grid: np.ndarray, lo: float, bin_per_mm: float) -> np.ndarray:
+    """(M,) bool: points whose (κmin, κmax) (M, 2) 1/mm falls in no occupied cell of ``grid`` (or off it); NaN
+    curvature (no class) is not flagged."""
+    k = np.asarray(kappa, np.float64).reshape(-1, 2)
+    ok = np.isfinite(k).all(axis=1)
+    with np.errstate(invalid="ignore"):
+        ij = np.floor((k - lo) / bin_per_mm)
+    n = grid.shape[0]
+    inside = ok & (ij >= 0).all(axis=1) & (ij < n).all(axis=1)
+    hit = np.zeros(len(k), bool)
+    ii = ij[inside].astype(np.int64)
+    hit[inside] = grid[ii[:, 0], ii[:, 1]]
+    return ok & ~hit
