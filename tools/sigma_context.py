@@ -44,9 +44,10 @@ def main(model_dir: str | None = None) -> None:
         inc = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", n, np.asarray(r.prepared.geometry.L)), -1, 1)))
         m = (cls == SURFACE_CLASSES.index("flat")) & (inc < 20) & np.isfinite(sig[:, 2]) & np.isfinite(std[:, 2])
         res = np.abs(art.errors(np.asarray(r.prepared.points)) - r.deviations[idx])[m, 2]
+        u_z = r.uncertainty[idx][m, 2].mean()
         print(f"  {label:7s} n {int(m.sum()):6d}  sigma_hat_z {1e3 * sig[m, 2].mean():5.2f} um  true std_z "
               f"{1e3 * std[m, 2].mean():5.2f} um  ratio {sig[m, 2].mean() / std[m, 2].mean():.2f}  "
-              f"q95 |actual - d| {1e3 * np.quantile(res, 0.95):4.1f} um  mean U_z {1e3 * r.uncertainty[idx][m, 2].mean():4.1f} um")
+              f"q95 |actual - d| {1e3 * np.quantile(res, 0.95):4.1f} um  mean U_z {1e3 * u_z:4.1f} um")
 
 
 if __name__ == "__main__":
