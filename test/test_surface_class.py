@@ -86,7 +86,7 @@ def test_principal_domain_keeps_what_calibration_saw_and_flags_the_rest() -> Non
     grid, lo, b = principal_domain_grid(dom)
     q = np.array([[0.04, 0.04], [0.0, 0.005], [-0.05, 0.05], [0.3, 0.35], [np.nan, np.nan], [5.0, 5.0]])
     assert out_of_principal_domain(q, grid, lo, b).tolist() == [False, False, True, True, False, True]
-    assert dom["n"] == 100_000 and 0.001 * dom["n"] >= 0
+    assert dom["n"] == 100_000
     with pytest.raises(ValueError):
         fit_principal_domain([np.full((3, 2), np.nan)])
 

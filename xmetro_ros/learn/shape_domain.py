@@ -49,6 +49,8 @@ def fit_principal_domain(kappas: Iterable[np.ndarray], quantile: float = SHAPE_Q
     ±``limit``) that the calibration points occupy, less the sparsest cells holding ``quantile`` of the points
     together (isolated noise), then one cell around every kept cell (the margin). A point is in the shape domain
     when its cell is one of them (judge/surface_class.py). Raises ValueError without finite values."""
+    from scipy.ndimage import binary_dilation
+
     n_bins = round(2 * limit / bin_per_mm)
     counts = np.zeros((n_bins, n_bins), np.int64)
     n = 0
@@ -66,11 +68,7 @@ def fit_principal_domain(kappas: Iterable[np.ndarray], quantile: float = SHAPE_Q
     drop = order[np.cumsum(flat[order]) <= quantile * n]  # the sparsest cells, together ≤ quantile of the points
     keep = flat > 0
     keep[drop] = False
-    keep = keep.reshape(n_bins, n_bins)
-    grown = keep.copy()  # one cell around each kept cell
-    for di in (-1, 0, 1):
-        for dj in (-1, 0, 1):
-            grown |= np.roll(np.roll(np.pad(keep, 1), di, 0), dj, 1)[1:-1, 1:-1]
+    grown = binary_dilation(keep.reshape(n_bins, n_bins), structure=np.ones((3, 3), bool))  # one cell around each
     cells = np.argwhere(grown)
     return {"measure": "principal curvatures (kmin, kmax) 1/mm from normals 1 mm apart on the scan grid "
                        "(xmetro_ros.preprocess.curvature.grid_principal_curvatures)",

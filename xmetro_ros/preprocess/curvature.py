@@ -35,6 +35,28 @@ RADIUS_MM = 1.0  # neighbour distance: ~5 normal-fit spacings at the study's den
 _MIN_DIRECTIONS = 3  # fewer valid neighbours (scan border, holes): NaN
 
 
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _step(rows: np.ndarray, P: np.ndarray, N: np.ndarray, i: int, j: int, a0: int, di: int, dj: int
+          ) -> tuple[bool, float, float, float, float]:
+    """(found, κ, d0, d1, d2): the normal curvature (n_k − n_a0)·d / |d|² from point ``a0`` at grid cell (i, j) to
+    the point ``di``, ``dj`` cells away, and d = p_k − p_a0; found False off the grid, at an empty cell, or for a
+    coincident or non-finite neighbour."""
+    h, w = rows.shape
+    a, b = i + di, j + dj
+    if a < 0 or a >= h or b < 0 or b >= w:
+        return False, 0.0, 0.0, 0.0, 0.0
+    k = rows[a, b]
+    if k < 0:
+        return False, 0.0, 0.0, 0.0, 0.0
+    d0 = P[k, 0] - P[a0, 0]
+    d1 = P[k, 1] - P[a0, 1]
+    d2 = P[k, 2] - P[a0, 2]
+    dd = d0 * d0 + d1 * d1 + d2 * d2
+    if not dd > 0.0:  # coincident or non-finite
+        return False, 0.0, 0.0, 0.0, 0.0
+    return True, ((N[k, 0] - N[a0, 0]) * d0 + (N[k, 1] - N[a0, 1]) * d1 + (N[k, 2] - N[a0, 2]) * d2) / dd, d0, d1, d2
+
+
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True)
 def _curvature(rows: np.ndarray, P: np.ndarray, N: np.ndarray, kr: int, kc: int) -> np.ndarray:
     """(M,) mean curvature of the M points P / N (M, 3) laid out on the grid ``rows`` (H, W): row of each cell's
@@ -52,20 +74,10 @@ def _curvature(rows: np.ndarray, P: np.ndarray, N: np.ndarray, kr: int, kc: int)
             acc = 0.0
             cnt = 0
             for o in range(8):
-                a, b = i + dro[o], j + dco[o]
-                if a < 0 or a >= h or b < 0 or b >= w:
-                    continue
-                k = rows[a, b]
-                if k < 0:
-                    continue
-                d0 = P[k, 0] - P[a0, 0]
-                d1 = P[k, 1] - P[a0, 1]
-                d2 = P[k, 2] - P[a0, 2]
-                dd = d0 * d0 + d1 * d1 + d2 * d2
-                if not dd > 0.0:  # coincident or non-finite
-                    continue
-                acc += ((N[k, 0] - N[a0, 0]) * d0 + (N[k, 1] - N[a0, 1]) * d1 + (N[k, 2] - N[a0, 2]) * d2) / dd
-                cnt += 1
+                found, kap, _, _, _ = _step(rows, P, N, i, j, a0, dro[o], dco[o])
+                if found:
+                    acc += kap
+                    cnt += 1
             if cnt >= _MIN_DIRECTIONS:
                 out[a0] = acc / cnt
     return out
@@ -102,19 +114,9 @@ def _principal(rows: np.ndarray, P: np.ndarray, N: np.ndarray, kr: int, kc: int)
             r0 = r1 = r2 = 0.0
             cnt = 0
             for o in range(8):
-                a, b = i + dro[o], j + dco[o]
-                if a < 0 or a >= h or b < 0 or b >= w:
+                found, kap, d0, d1, d2 = _step(rows, P, N, i, j, a0, dro[o], dco[o])
+                if not found:
                     continue
-                k = rows[a, b]
-                if k < 0:
-                    continue
-                d0 = P[k, 0] - P[a0, 0]
-                d1 = P[k, 1] - P[a0, 1]
-                d2 = P[k, 2] - P[a0, 2]
-                dd = d0 * d0 + d1 * d1 + d2 * d2
-                if not dd > 0.0:
-                    continue
-                kap = ((N[k, 0] - N[a0, 0]) * d0 + (N[k, 1] - N[a0, 1]) * d1 + (N[k, 2] - N[a0, 2]) * d2) / dd
                 u = d0 * e10 + d1 * e11 + d2 * e12
                 v = d0 * e20 + d1 * e21 + d2 * e22
                 uv = u * u + v * v
