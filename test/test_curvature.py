@@ -62,24 +62,26 @@ def test_concave_and_sharp_shapes_and_unorganized_scans() -> None:
 
 
 def test_shape_domain_flags_what_training_never_saw(tmp_path) -> None:
-    """The shipped card's shape domain (its calibration campaign: spheres and a cylinder) keeps sphere points and
-    flags the bowl's pocket; a card without ``domain_shape`` checks nothing; ``_calibrate_default`` writes the
-    block from its calibration clouds."""
+    """The shipped card's shape domain (cells of the (κmin, κmax) plane its calibration points occupy: spheres, a
+    cylinder and the calibration surfaces) keeps a sphere's points and the bowl's, and flags a Ø8 sphere (curved
+    beyond 0.1 /mm both ways: no calibration surface is); a card without ``domain_shape`` checks nothing;
+    ``_calibrate_default`` without the surfaces writes the mean-curvature range of its calibration clouds, which
+    flags the bowl's pocket."""
     pytest.importorskip("open3d")
     from xmetro_ros.apps.train import _calibrate_default
     from xmetro_ros.parts.study import PRESENTATION
     from xmetro_ros.scan.generated_parts import make_part
 
     ms = ModelSet.load()
-    lo, hi, radius = ms.shape_domain
-    assert lo < 0.0 < 1 / 27.5 < 1 / 17.5 < hi and radius == 1.0
+    assert ms.principal_domain is not None
     h = ScanHandler(ms, SC)
-    sphere = h.process(simulate_scan(Sphere(22.5), ScanSettings(10.0, 4.0, 0.5), scanner=SC, seed=3))
+    st = ScanSettings(10.0, 4.0, 0.5)
+    sphere = h.process(simulate_scan(Sphere(22.5), st, scanner=SC, seed=3))
     assert sphere.shape_out_of_domain is not None and sphere.shape_out_of_domain.mean() < 0.005
-    bowl = h.process(simulate_scan(make_part("bowl").transformed(PRESENTATION), ScanSettings(10.0, 4.0, 0.5),
-                                   scanner=SC, seed=3))
-    c = mean_curvature(bowl.prepared)
-    assert bowl.shape_out_of_domain[c < lo - 0.05 * (hi - lo)].all() and bowl.shape_out_of_domain.mean() > 0.3
+    bowl = h.process(simulate_scan(make_part("bowl").transformed(PRESENTATION), st, scanner=SC, seed=3))
+    assert bowl.shape_out_of_domain.mean() < 0.01
+    small = h.process(simulate_scan(Sphere(4.0), st, scanner=SC, seed=3))
+    assert small.shape_out_of_domain.mean() > 0.9
 
     d = tmp_path / "m"
     shutil.copytree(default_model_dir(), d)
@@ -90,6 +92,12 @@ def test_shape_domain_flags_what_training_never_saw(tmp_path) -> None:
     _calibrate_default(d, "micro", 0, surfaces=False)
     block = json.loads((d / "card.json").read_text())["domain_shape"]
     assert block["lo"] < 0.0 < block["hi"] < 0.1 and block["n"] > 10_000 and "principal" not in block
+    mc = ModelSet.load(d)
+    lo, hi, radius = mc.shape_domain
+    assert lo < 0.0 < 1 / 27.5 < 1 / 17.5 < hi and radius == 1.0
+    old = ScanHandler(mc, SC).process(bowl.scan)
+    c = mean_curvature(old.prepared)
+    assert old.shape_out_of_domain[c < lo - 0.05 * (hi - lo)].all() and old.shape_out_of_domain.mean() > 0.3
 
 
 def test_calibration_with_surfaces_gives_u_per_class_and_the_judge_uses_it(tmp_path) -> None:
@@ -99,7 +107,6 @@ def test_calibration_with_surfaces_gives_u_per_class_and_the_judge_uses_it(tmp_p
     (concave, like the calibration's groove and dimple) mostly in."""
     pytest.importorskip("open3d")
     from xmetro_ros.apps.train import _calibrate_default
-    from xmetro_ros.judge.surface_class import surface_class
     from xmetro_ros.parts.study import PRESENTATION
     from xmetro_ros.preprocess.curvature import principal_curvatures
     from xmetro_ros.scan.generated_parts import make_part
@@ -109,14 +116,14 @@ def test_calibration_with_surfaces_gives_u_per_class_and_the_judge_uses_it(tmp_p
     _calibrate_default(d, "micro", 0)
     card = json.loads((d / "card.json").read_text())
     by = card["uncertainty"]["conditional"]["by_surface"]
-    assert by["classes"] == ["flat", "convex", "concave", "saddle"]
+    assert by["classes"] == ["flat", "convex", "concave", "saddle", "sharp"]
     assert all(np.asarray(n).sum() > 500 for n in by["n"]), [np.asarray(n).sum() for n in by["n"]]
     assert len(card["domain_shape"]["principal"]["cells"]) > 50
     ms = ModelSet.load(d)
     assert ms.by_surface and ms.principal_domain is not None
     res = ScanHandler(ms, SC).process(simulate_scan(make_part("bowl").transformed(PRESENTATION),
                                                     ScanSettings(10.0, 4.0, 0.5), scanner=SC, seed=3))
-    cls = surface_class(principal_curvatures(res.prepared))
+    cls = ms.surface_classes(principal_curvatures(res.prepared))
     assert (cls == 2).mean() > 0.2  # the pocket
     up = ms.predict_with_uncertainty(res.features, surface_class=cls)
     np.testing.assert_array_equal(res.row_uncertainty, up.U)

@@ -343,6 +343,10 @@ def test_guard_banded_classes_all_occur_through_a_node_with_a_sharp_model(tmp_pa
     cond = card["uncertainty"].get("conditional")
     if cond:  # the per-condition multipliers are the ones U uses
         cond["multiplier"] = [[None if m is None else 0.02 * m for m in cell] for cell in cond["multiplier"]]
+        by = cond.get("by_surface")
+        if by:  # and those of each surface class
+            by["multiplier"] = [[[None if m is None else 0.02 * m for m in cell] for cell in rows]
+                                for rows in by["multiplier"]]
     (d / "card.json").write_text(json.dumps(card))
     scan = _scan(160 * S, seed=11)
     # the tolerance: the median |d| of the shipped model on this scan (d does not depend on the multipliers)

@@ -82,9 +82,11 @@ def test_flag_thresholds_follow_parameters(handler, scan):
 
 
 def test_out_of_domain_says_which_check_and_only_the_multivariate_one_widens_u(handler):
-    # A narrowed margin (negative: inside the training range) so that each of the three checks flags points; the
-    # settings in the middle of the training range (6 / 3 lie on its edge).
-    scan = simulate_scan(Sphere(17.5, np.zeros(3)), ScanSettings(10.0, 4.0, 0.5), seed=2)
+    # A narrowed margin (negative: inside the training range) so that the feature and multivariate checks flag
+    # points; the settings in the middle of the training range (6 / 3 lie on its edge). A Ø20 sphere: curved by
+    # 0.1 /mm both ways, most of its (κmin, κmax) lie where no calibration shape was (the shipped card's shape
+    # check has no margin).
+    scan = simulate_scan(Sphere(10.0, np.zeros(3)), ScanSettings(10.0, 4.0, 0.5), seed=2)
     base = handler.params
     try:
         handler.params = replace(base, domain_margin=-0.1)
@@ -113,7 +115,7 @@ def test_out_of_domain_says_which_check_and_only_the_multivariate_one_widens_u(h
     _err, sig = model.predict_with_sigma(r.features)
     model.domain_distance = lambda X: np.full(len(X), np.nan)  # NaN distance: no widening (this instance only)
     try:
-        U0, _ = model._expand(sig, r.features)
+        U0, _ = model._expand(sig, r.features, r.surface_class)
     finally:
         del model.domain_distance
     far = dist > 1.0

@@ -11,6 +11,7 @@ from xmetro_ros.judge.conditions import multiplier_table, row_multipliers
 from xmetro_ros.judge.set_kernels import expand_u_conditional
 from xmetro_ros.judge.surface_class import (
     SURFACE_CLASSES,
+    card_surface_class,
     out_of_principal_domain,
     principal_domain_grid,
     surface_class,
@@ -72,8 +73,18 @@ def test_saddle_reads_opposite_signs_and_the_classes_follow() -> None:
 
 
 def test_surface_class_thresholds() -> None:
-    k = np.array([[0.0, 0.01], [0.0, 0.05], [-0.05, 0.0], [-0.05, 0.05], [np.nan, 0.0], [-0.02, 0.02]])
-    assert surface_class(k).tolist() == [0, 1, 2, 3, -1, 0]
+    """Flat within ±0.02 /mm, sharp beyond 0.1 /mm either way whatever the signs; a card calibrated with four
+    classes classifies with its own thresholds and no sharp class; unknown classes are refused."""
+    k = np.array([[0.0, 0.01], [0.0, 0.05], [-0.05, 0.0], [-0.05, 0.05], [np.nan, 0.0], [-0.02, 0.02],
+                  [0.0, 0.5], [-0.3, 0.0], [-0.2, 0.05], [0.05, 0.1]])
+    assert surface_class(k).tolist() == [0, 1, 2, 3, -1, 0, 4, 4, 4, 1]
+    assert surface_class(k, sharp=None).tolist() == [0, 1, 2, 3, -1, 0, 1, 2, 3, 1]
+    four = {"classes": ["flat", "convex", "concave", "saddle"], "flat_curvature_per_mm": 0.02}
+    assert card_surface_class(k, four).tolist() == [0, 1, 2, 3, -1, 0, 1, 2, 3, 1]
+    five = {**four, "classes": list(SURFACE_CLASSES), "sharp_curvature_per_mm": 0.4}
+    assert card_surface_class(k, five).tolist() == [0, 1, 2, 3, -1, 0, 4, 2, 3, 1]
+    with pytest.raises(ValueError, match="surface classes"):
+        card_surface_class(k, {**four, "classes": ["flat", "edge"]})
 
 
 def test_principal_domain_keeps_what_calibration_saw_and_flags_the_rest() -> None:
@@ -98,7 +109,7 @@ def _block(with_classes: bool):
     m = 40_000
     names = ["Inc", "exposure_time"]
     X = np.column_stack([rng.uniform(0.05, 1.0, m), rng.choice([0.1, 0.5, 2.0], m)]).astype(np.float32)
-    cls = rng.integers(-1, 4, m).astype(np.int8)
+    cls = rng.integers(-1, 5, m).astype(np.int8)
     sig = np.ones((m, 3))
     res = rng.normal(0.0, 1.0, (m, 3)) * np.where(cls == 3, 3.0, 1.0)[:, None]
     cond = conditional_multipliers(X, names, res, sig, np.ones((m, 3), bool),
@@ -118,7 +129,7 @@ def test_u_per_surface_class_and_the_compiled_kernel_agree() -> None:
     assert per[3] > 2.5 * max(per[:3]) and 1.7 < per[0] < 2.3
     table = multiplier_table(block)
     n_cells = len(block["conditional"]["multiplier"])
-    assert table.shape == (5 * n_cells, 3)
+    assert table.shape == ((1 + len(SURFACE_CLASSES)) * n_cells, 3)
     rows = row_multipliers(block, X, names, cls)
     cos_e = np.cos(np.radians(np.arange(10.0, 90.0, 10.0)))
     exp_e = np.array(block["conditional"]["exposure_edges_ms"][1:-1])
@@ -140,15 +151,15 @@ def test_u_per_surface_class_and_the_compiled_kernel_agree() -> None:
 
 def test_surface_campaign_spans_the_classes() -> None:
     """Every surface under every 13th setting (12 scans: all three exposures), each setting with another tilt; all
-    four classes present in the campaign's points."""
+    five classes present in the campaign's points."""
     items = surface_campaign(SC, 0, stride=13)
     assert {st.exposure_ms for _, st, _, _ in items} == {0.1, 0.5, 2.0}
     assert len(items) == 12 and len({lab for *_, lab in items}) == 12
-    seen = np.zeros(4, int)
+    seen = np.zeros(len(SURFACE_CLASSES), int)
     for art, st, seed, _ in items[::3]:
         prep = prepare_scan(simulate_scan(art, st, scanner=SC, seed=seed), scanner=SC)
         c = surface_class(principal_curvatures(prep))
-        seen += np.bincount(c[c >= 0], minlength=4)
+        seen += np.bincount(c[c >= 0], minlength=len(SURFACE_CLASSES))
     assert (seen > 1000).all(), seen
     with pytest.raises(KeyError, match="unknown calibration surface"):
         make_surface("bowl")

@@ -169,18 +169,21 @@ def test_card_without_multivariate_domain_falls_back_to_min_max(trained, tmp_pat
 
 
 def test_shipped_default_intervals_on_new_seeds_and_artifacts():
-    """The packaged default (full profile, calibrated on campaign seed 1000) on a Ø40 sphere and an r 15 mm
-    cylinder simulated with seed 3 (docs/uncertainty.md table). Calibrated per condition (incidence × exposure) with
-    the envelope over neighbouring incidence bins, every bin covers ≥ 93 % (one multiplier per axis: 91.5 % in the
-    worst) and the overall coverage is conservative by up to 1.2 % (95.8-96.1 %, was 94.9-95.6 %): the price of
-    holding in every condition rather than on average."""
+    """The packaged default (full profile, calibrated on campaign seed 1000 and the calibration surfaces) on a Ø40
+    sphere and an r 15 mm cylinder simulated with seed 3, each point's U of its surface class as the node publishes
+    it (docs/uncertainty.md table). Calibrated per condition (incidence × exposure) with the envelope over
+    neighbouring incidence bins, every bin covers ≥ 93 % (one multiplier per axis: 91.5 % in the worst); overall
+    the coverage is conservative, X most (97.1 %: the convex class also holds the weakly convex points of the saddle
+    and groove surfaces, where the sphere-trained model's X is worse): the price of holding in every condition and
+    on parts rather than on spheres alone (calibrated on the spheres alone: 95.8-96.1 %)."""
     from xmetro_ros.learn.uncertainty_eval import evaluate_shipped
 
     r = evaluate_shipped()
     u = r["calibration"]
-    assert "crepes" in u["method"] and len(u["calibration_clouds"]) == 108 and u["conditional"]
+    assert "crepes" in u["method"] and len(u["calibration_clouds"]) == 216 and u["conditional"]["by_surface"]
+    assert r["per_class"] and (r["surface_class"] == 1).mean() > 0.8  # spheres and a cylinder: mostly convex
     for ax, m in r["metrics"].items():
-        assert 0.94 <= m["coverage"] <= 0.965, (ax, m["coverage"])
+        assert 0.94 <= m["coverage"] <= 0.975, (ax, m["coverage"])
         assert m["sharpness_ratio"] <= 1.3 and m["spearman_U_true_std"] >= 0.7, (ax, m)
         for name, rows in m["bins"].items():
             assert all(b["coverage"] >= 0.93 for b in rows if b["n"] >= 200), (ax, name, rows)

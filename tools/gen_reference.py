@@ -274,10 +274,11 @@ def block_default_card() -> str:
         return " / ".join(f"{c['metrics'][split][ax]['mae'] * 1e3:.2f}" for ax in "xyz")
 
     conf = c["uncertainty"]["confidence"]
+    per_class = " and surface class" if c["uncertainty"].get("conditional", {}).get("by_surface") else ""
     return _para(f"The shipped default model set (`{c['id']}`, made by "
-            f"`xmetro export-default --seed {c['seed']} --no-surfaces`) has "
+            f"`xmetro export-default --seed {c['seed']}`) has "
             f"an MAE of {row('point')} µm in X / Y / Z on the point split and {row('cloud')} µm on the cloud split, "
-            f"and carries a conformal calibration per condition for its {conf * 100:.0f} % intervals U. "
+            f"and carries a conformal calibration per condition{per_class} for its {conf * 100:.0f} % intervals U. "
             "Source: its card, `xmetro_ros/models/default/card.json`.") + "\n"
 
 
@@ -285,12 +286,16 @@ def block_parts() -> str:
     """CAD comparison and interval coverage on the generated parts (``docs/results/parts/summary.json``)."""
     s = _load("docs/results/parts/summary.json")
     out = ["| part | settings (pts/mm, profiles/mm, ms) | \\|measured − CAD − form error\\| MAE, raw / compensated "
-           "(pose known) | interval coverage in domain |", "|---|---|---|---|"]
+           "(pose known) | points out of domain | interval coverage in domain: along the normal; lowest axis |",
+           "|---|---|---|---|---|"]
     for part, runs in s["parts"].items():
         for r in runs:
             lat, d, e = r["settings"]
+            xyz = r["coverage_in_domain_xyz"]
+            low = min(range(3), key=lambda i: xyz[i])
             out.append(f"| {part} | {lat:g} / {d:g} / {e:g} | {r['cad_known_pose']['factor_mae']:.2f}× | "
-                       f"{r['coverage_in_domain'] * 100:.1f} % |")
+                       f"{r['out_of_domain_share'] * 100:.1f} % | {r['normal_coverage_in_domain'] * 100:.1f} %; "
+                       f"{'xyz'[low]} {xyz[low] * 100:.1f} % |")
     out += ["", _para(
         f"The shipped model `{s['model']}` on parts it never saw, true form error {s['form_um']:g} µm, seed "
         f"{s['seed']}. Source: `docs/results/parts/summary.json`, written by "

@@ -3,7 +3,7 @@
 A flat patch seen within 20° of normal incidence at 6/3/0.1 carries the same noise on every part (the simulator's
 std, ~16.4 µm along Z); the PointNet's σ̂ of such points is printed next to it for a plain plate, a plate with a
 groove, and the test parts ``bowl`` and ``step``, with the 95 % quantile of |actual − d| and the mean U_z. Its
-figures are quoted in docs/parts-generalisation.md ("U per surface class").
+figures are quoted in docs/parts-generalisation.md ("Why 0.1 ms still fails").
 """
 
 from __future__ import annotations

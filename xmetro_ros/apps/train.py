@@ -51,7 +51,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e.add_argument("--no-calibrate", action="store_true",
                    help="skip the conformal calibration on fresh clouds (the card then has no 'uncertainty')")
     e.add_argument("--no-surfaces", action="store_true",
-                   help="calibrate on the training campaign's shapes only, as the packaged card was")
+                   help="calibrate on the training campaign's shapes only (cards up to 0.7.2)")
     e.set_defaults(func=run_export_default)
 
 

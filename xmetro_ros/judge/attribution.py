@@ -15,6 +15,11 @@ Two uses:
   deviation exactly, the base is the same for every point, and the context player's share says how much of a
   point's prediction its set neighbours carry. Point-wise models need no context player (their prediction depends on
   the row alone) and get the plain scheme.
+
+With a card calibrated per surface class, U's multiplier depends on each point's class (from the scan's curvature,
+not a feature). Explaining U with the classes adds the player :data:`SURFACE_CLASS`: off, a point takes the
+all-class multiplier (so the base stays the same for every point), on, its own class's; its share says how much the
+point's shape moves its U, and base + Σ SHAP equals the published U.
 """
 
 from __future__ import annotations
@@ -23,10 +28,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["OUTPUTS", "SET_CONTEXT", "ShapResult", "explain", "explain_in_cloud", "global_ranking"]
+__all__ = ["OUTPUTS", "SET_CONTEXT", "SURFACE_CLASS", "ShapResult", "explain", "explain_in_cloud", "global_ranking"]
 
 # Name of the extra player of :func:`explain_in_cloud` for set models: the other points of the point's set.
 SET_CONTEXT = "set_context"
+# Name of the player of an explanation of U with surface classes: the point's class (off: the all-class multiplier).
+SURFACE_CLASS = "surface_class"
 #: What can be explained: the predicted error, or its expanded uncertainty U.
 OUTPUTS = ("error", "uncertainty")
 
@@ -55,11 +62,13 @@ def explain(
     max_background: int = 10,
     seed: int = 0,
     output: str = "error",
+    surface_class: np.ndarray | None = None,
 ) -> ShapResult:
     """SHAP values of ``model_set`` (a :class:`~xmetro_ros.judge.inference.ModelSet`) for the rows X (P, F).
 
     output: "error" (the predicted error) or "uncertainty" (its expanded uncertainty U, which features make a point
-    uncertain; needs a calibrated model set). Additivity holds for either.
+    uncertain; needs a calibrated model set). Additivity holds for either. ``surface_class`` (P,): with "uncertainty",
+    each row's surface class, a player of its own (:data:`SURFACE_CLASS`, module doc; None: the all-class U).
 
     background: (B, F) reference rows (None → the card's stored background, else the column medians of X);
     at most ``max_background`` rows are used (evenly spaced). ``n_permutations`` is rounded up to an even number
@@ -67,21 +76,30 @@ def explain(
     """
     X = _check_rows(model_set, X, axes)
     axes = tuple(int(a) for a in axes)
+    _check_output(output)
     bg = _background(model_set, X, background, max_background)
-    perms = _permutations(X.shape[1], n_permutations, seed)
     P, B, F = len(X), len(bg), X.shape[1]
+    cls = None if surface_class is None or output != "uncertainty" else np.asarray(surface_class).reshape(P)
+    players = F + (cls is not None)  # the features, then the surface class
+    perms = _permutations(players, n_permutations, seed)
     # states[j, b, s] : coalition after s switches of permutation j from background b to x.
-    states = np.empty((len(perms), B, F + 1, P, F), np.float32)
+    states = np.empty((len(perms), B, players + 1, P, F), np.float32)
+    state_cls = np.full((len(perms), players + 1, P), -1, np.int8)  # −1: the all-class multiplier
     for j, perm in enumerate(perms):
         cur = np.broadcast_to(bg[:, None, :], (B, P, F)).copy()
         states[j, :, 0] = cur
         for s, k in enumerate(perm, start=1):
-            cur[:, :, k] = X[None, :, k]
+            if k < F:
+                cur[:, :, k] = X[None, :, k]
+            else:
+                state_cls[j, s:] = cls
             states[j, :, s] = cur
-    _check_output(output)
-    pred = model_set.predict_batch(states.reshape(-1, P, F), output=output).reshape(len(perms), B, F + 1, P, 3)
-    pred = pred[..., axes]
-    return _shapley(pred, perms, list(model_set.feature_names), axes)
+    kw = {} if cls is None else {
+        "surface_class": np.broadcast_to(state_cls[:, None], (len(perms), B, players + 1, P)).reshape(-1, P)}
+    pred = model_set.predict_batch(states.reshape(-1, P, F), output=output, **kw)
+    pred = pred.reshape(len(perms), B, players + 1, P, 3)[..., axes]
+    names = list(model_set.feature_names) + ([SURFACE_CLASS] if cls is not None else [])
+    return _shapley(pred, perms, names, axes)
 
 
 def explain_in_cloud(
@@ -95,6 +113,7 @@ def explain_in_cloud(
     seed: int = 0,
     max_set_rows: int = 4_000_000,
     output: str = "error",
+    surface_class: np.ndarray | None = None,
 ) -> ShapResult:
     """SHAP values of the published predictions of ``rows`` of a cloud (see the module docstring).
 
@@ -102,7 +121,8 @@ def explain_in_cloud(
     in order); rows: (P,) indices into it. For a set model the background is thinned (evenly spaced) so that at most
     ``max_set_rows`` feature rows are predicted; additivity is exact whatever the background. Raises ValueError for
     bad shapes, non-finite rows, rows out of range or unknown axes. ``output``: as :func:`explain` (with
-    "uncertainty", base + Σ SHAP equals the published U).
+    "uncertainty", base + Σ SHAP equals the published U: give ``surface_class`` (M,), the classes the judge gave
+    the cloud's rows, when the card is calibrated per class).
     """
     _check_output(output)
     X_cloud = np.asarray(X_cloud, np.float32)
@@ -111,9 +131,15 @@ def explain_in_cloud(
         raise ValueError(f"explain: the cloud must be (M, {len(model_set.feature_names)}), got {X_cloud.shape}")
     if len(rows) and (rows.min() < 0 or rows.max() >= len(X_cloud)):
         raise ValueError(f"explain: rows out of range [0, {len(X_cloud)})")
+    cls = None
+    if surface_class is not None and output == "uncertainty":
+        cls = np.asarray(surface_class).reshape(-1)
+        if len(cls) != len(X_cloud):
+            raise ValueError(f"explain: {len(cls)} surface classes for a cloud of {len(X_cloud)} rows")
     if not model_set.has_sets:
-        return explain(model_set, X_cloud[rows], background, axes=axes,
-                       n_permutations=n_permutations, max_background=max_background, seed=seed, output=output)
+        return explain(model_set, X_cloud[rows], background, axes=axes, n_permutations=n_permutations,
+                       max_background=max_background, seed=seed, output=output,
+                       surface_class=None if cls is None else cls[rows])
     if not np.all(np.isfinite(X_cloud)):
         raise ValueError("explain: the cloud has non-finite features (predict leaves them out of every set)")
     X = _check_rows(model_set, X_cloud[rows], axes)
@@ -125,18 +151,20 @@ def explain_in_cloud(
     members = idx[set_of[rows]]  # (P, n) cloud rows of each explained point's set (padding repeats members)
     is_self = members == rows[:, None]  # where the point itself sits (more than once if padded with itself)
     first = is_self.argmax(axis=1)
-    perms = _permutations(F + 1, n_permutations, seed)  # players: F features, then the set context
-    steps = F + 2
+    players = F + 1 + (cls is not None)  # F features, the set context, then the surface class
+    perms = _permutations(players, n_permutations, seed)
+    steps = players + 1
     budget_b = max(1, int(max_set_rows) // max(1, P * len(perms) * steps * n))
     bg = _background(model_set, X, background, min(max_background, budget_b))
     B, J = len(bg), len(perms)
-    # Per permutation: the point's feature mask and the context flag after s switches (s = 0 .. F+1).
-    on = np.zeros((J, steps, F + 1), bool)
+    # Per permutation: the point's feature mask, the context flag (and the class flag) after s switches.
+    on = np.zeros((J, steps, players), bool)
     for j, perm in enumerate(perms):
         for s, k in enumerate(perm, start=1):
             on[j, s:, k] = True
     pred = np.empty((J, B, steps, P, len(axes)))
     predict_sets = model_set.predict_sets if output == "error" else model_set.predict_sets_uncertainty
+    own_cls = None if cls is None else cls[rows]
     chunk = max(1, 250_000 // (J * B * steps * n))  # points per batch: ~250k feature rows per ONNX call
     for c0 in range(0, P, chunk):
         c = slice(c0, min(P, c0 + chunk))
@@ -148,9 +176,15 @@ def explain_in_cloud(
         own = np.where(on[:, None, :, None, :F], X[None, None, None, c], bg[None, :, None, None, :])  # (J,B,S,pc,F)
         sel = np.broadcast_to(is_self[c][None, None, None, :, :, None], sets.shape)
         sets[sel] = np.broadcast_to(own[:, :, :, :, None, :], sets.shape)[sel]
-        y = predict_sets(sets.reshape(-1, n, F)).reshape(J, B, steps, pc, n, 3)
+        if own_cls is None:
+            y = predict_sets(sets.reshape(-1, n, F)).reshape(J, B, steps, pc, n, 3)
+        else:  # the point's class once its player is on, else none (−1); only its own output is read
+            st = np.where(on[:, :, F + 1][:, :, None], own_cls[c][None, None, :], -1)  # (J, steps, pc)
+            sc = np.broadcast_to(st[:, None, :, :, None], (J, B, steps, pc, n)).reshape(-1, n)
+            y = model_set.predict_sets_uncertainty(sets.reshape(-1, n, F), sc).reshape(J, B, steps, pc, n, 3)
         pred[:, :, :, c] = y[:, :, :, np.arange(pc), first[c]][..., axes]
-    return _shapley(pred, perms, [*list(model_set.feature_names), SET_CONTEXT], axes)
+    names = [*list(model_set.feature_names), SET_CONTEXT] + ([SURFACE_CLASS] if cls is not None else [])
+    return _shapley(pred, perms, names, axes)
 
 
 def _check_output(output: str) -> None:

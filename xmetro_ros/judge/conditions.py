@@ -8,8 +8,8 @@ clouds — and the card's ``uncertainty.conditional`` block holds them; a point'
 A condition the calibration saw too few points of has no multiplier: those points get no U (NaN, flag
 NO_UNCERTAINTY) rather than a guess. Cards without the block keep one multiplier per axis.
 
-A card calibrated on surfaces of every class (flat, convex, concave, saddle: :mod:`.surface_class`) also holds the
-multipliers per surface class (``conditional.by_surface``): the table of :func:`multiplier_table` then stacks
+A card calibrated on surfaces of every class (flat, convex, concave, saddle, sharp: :mod:`.surface_class`) also
+holds the multipliers per surface class (``conditional.by_surface``): the table of :func:`multiplier_table` then stacks
 (1 + classes) blocks of the conditions' rows, block 0 over all classes (points without a class: unorganized scans,
 scan borders) and block 1 + k for class k; a class's condition with too few calibration points takes block 0's
 multiplier.

@@ -388,12 +388,14 @@ class ModelSet:
             _from_sets(y[o].reshape(-1, 3), order, out[o], rows)
         return out[0], (out[1] if sigma else None)
 
-    def predict_batch(self, Xq: np.ndarray, output: str = "error") -> np.ndarray:
+    def predict_batch(self, Xq: np.ndarray, output: str = "error", surface_class: np.ndarray | None = None
+                      ) -> np.ndarray:
         """(Q, P, F) → (Q, P, 3): Q versions of the same P-point cloud, each predicted as ``predict`` would
         (same set partition for every version). Used by the SHAP explainer and the recommender. Rows must be
-        finite. ``output="uncertainty"``: U as :meth:`predict_with_uncertainty` instead of the errors."""
+        finite. ``output="uncertainty"``: U as :meth:`predict_with_uncertainty` instead of the errors (with the
+        points' surface classes ``surface_class``: (P,) in every version, or (Q, P))."""
         if output != "error":  # U as predict_with_uncertainty computes it, from the same run's log σ̂
-            return self.predict_batch_with_uncertainty(Xq)[1]
+            return self.predict_batch_with_uncertainty(Xq, surface_class)[1]
         Xq = np.asarray(Xq, dtype=np.float32)
         q, p, f = Xq.shape
         out = np.empty((q, p, 3))
@@ -404,10 +406,12 @@ class ModelSet:
         _from_sets(self._run_sets(sets, False)[0].reshape(q, -1, 3), order, out)
         return out
 
-    def predict_batch_with_uncertainty(self, Xq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def predict_batch_with_uncertainty(self, Xq: np.ndarray, surface_class: np.ndarray | None = None
+                                       ) -> tuple[np.ndarray, np.ndarray]:
         """(Q, P, F) → (errors (Q, P, 3), U (Q, P, 3)) mm: each version as :meth:`predict_with_uncertainty` would give
-        it, errors and U from ONE ONNX run per chunk of sets (the recommender's candidates; ``predict_batch``'s U).
-        Rows must be finite. Raises ModelLoadError without a calibration."""
+        it (with the points' classes ``surface_class``: (P,) in every version, or (Q, P)), errors and U from ONE ONNX
+        run per chunk of sets (the recommender's candidates; ``predict_batch``'s U). Rows must be finite. Raises
+        ModelLoadError without a calibration."""
         if not self.calibrated:
             raise ModelLoadError(f"model set {self.id!r} has no uncertainty calibration (card 'uncertainty')")
         Xq = np.asarray(Xq, dtype=np.float32)
@@ -418,7 +422,11 @@ class ModelSet:
         order, pos = set_order(p, self.set_size, self.partition_seed)
         sets = _to_sets(Xq, pos, order).reshape(-1, self.set_size, f)
         y = self._run_sets(sets, True, exp_sigma=True)  # float32 exp, as predict_with_uncertainty
-        U, _ = self._expand(y[1].astype(np.float64).reshape(-1, 3), sets.reshape(-1, f))
+        cls = None
+        if surface_class is not None:  # (P,) or (Q, P), laid out as the sets
+            sc = np.asarray(surface_class)
+            cls = np.tile(sc[order], q) if sc.ndim == 1 else sc[:, order].reshape(-1)
+        U, _ = self._expand(y[1].astype(np.float64).reshape(-1, 3), sets.reshape(-1, f), cls)
         _from_sets(y[0].reshape(q, -1, 3), order, err)
         _from_sets(U.reshape(q, -1, 3), order, unc)
         return err, unc
@@ -512,6 +520,17 @@ class ModelSet:
         then gives :meth:`predict_with_uncertainty` each point's class (:mod:`.surface_class`)."""
         return bool(((self.card.get("uncertainty") or {}).get("conditional") or {}).get("by_surface"))
 
+    def surface_classes(self, kappa: np.ndarray) -> np.ndarray:
+        """(M,) int8 surface class of each point from its (M, 2) principal curvatures (1/mm), with the classes and
+        thresholds the card was calibrated with (:func:`.surface_class.card_surface_class`); all −1 (the all-class
+        multiplier) for a card not calibrated per class."""
+        from .surface_class import card_surface_class
+
+        by = ((self.card.get("uncertainty") or {}).get("conditional") or {}).get("by_surface")
+        if not by:
+            return np.full(len(np.asarray(kappa).reshape(-1, 2)), -1, np.int8)
+        return card_surface_class(kappa, by)
+
     def multipliers(self, X: np.ndarray, surface_class: np.ndarray | None = None) -> np.ndarray:
         """The conformal multiplier of each feature row and axis: (3,) for a card calibrated per axis only, (M, 3)
         for one calibrated per condition (incidence × exposure, :mod:`.conditions`, and the row's surface class
@@ -539,16 +558,18 @@ class ModelSet:
         # (σ̂ + floor) × mult × max(1, distance), in that order (NaN distance: no widening), one compiled pass
         return _expand_u(np.asarray(sig, np.float64), floor, mult, dist), dist
 
-    def predict_sets_uncertainty(self, sets: np.ndarray) -> np.ndarray:
-        """(K, n, F) → U (K, n, 3) mm of each set's rows predicted as one PointNet set (as :meth:`predict_sets`);
-        a set of the partition of :meth:`predict_with_uncertainty` gets exactly the published U of its points (the
+    def predict_sets_uncertainty(self, sets: np.ndarray, surface_class: np.ndarray | None = None) -> np.ndarray:
+        """(K, n, F) → U (K, n, 3) mm of each set's rows predicted as one PointNet set (as :meth:`predict_sets`),
+        with the rows' surface classes ``surface_class`` (K, n) when given; a set of the partition of
+        :meth:`predict_with_uncertainty` with its points' classes gets exactly the published U of its points (the
         explainer of U relies on it). Raises ModelLoadError without a calibration."""
         sets = np.asarray(sets, dtype=np.float32)
         k, n, f = sets.shape
         if not self.calibrated:
             raise ModelLoadError(f"model set {self.id!r} has no uncertainty calibration (card 'uncertainty')")
         _, sig = self.predict_sets_sigma(sets)
-        U, _ = self._expand(sig.reshape(k * n, 3), sets.reshape(k * n, f))
+        cls = None if surface_class is None else np.asarray(surface_class).reshape(k * n)
+        U, _ = self._expand(sig.reshape(k * n, 3), sets.reshape(k * n, f), cls)
         return U.reshape(k, n, 3)
 
     def predict_with_uncertainty(self, X: np.ndarray, surface_class: np.ndarray | None = None

@@ -30,7 +30,7 @@ from ..scan.scan import Scan
 from ..scan.scanner import ScannerModel, SettingsError
 from . import flags as fl
 from .point_flags import NO_DECISION, base_flags, kept_point_flags, point_masks, scatter_kept
-from .surface_class import out_of_principal_domain, surface_class
+from .surface_class import out_of_principal_domain
 
 __all__ = [
     "NO_DECISION",
@@ -205,6 +205,8 @@ class ScanResult:
         shape_out_of_domain: (M,) bool per row of ``prepared``: a surface shape (mean curvature) outside the model's
             calibration shapes (flagged OUT_OF_DOMAIN and DOMAIN_SHAPE, U not widened); None when the card has no
             ``domain_shape``.
+        surface_class: (M,) int8 surface class of each row of ``prepared`` whose multipliers its U took
+            (:meth:`ModelSet.surface_classes`; −1 none), None when the card is not calibrated per class.
         model_id: id of the model set that judged the scan (the primary, or the pose model: :meth:`ScanHandler.route`).
     """
 
@@ -221,6 +223,7 @@ class ScanResult:
     row_uncertainty: np.ndarray | None = None
     decisions: np.ndarray | None = None
     shape_out_of_domain: np.ndarray | None = None
+    surface_class: np.ndarray | None = None
     model_id: str = ""
 
 
@@ -438,11 +441,10 @@ class ScanHandler:
         mv_ood = None
         # the two principal curvatures when the card uses them: U per surface class, the shape domain's cells
         kappa = self._principal_curvatures(prepared, model)
+        surf = (model.surface_classes(kappa) if kappa is not None and getattr(model, "by_surface", False)
+                else None)
         if getattr(model, "calibrated", False):
-            if kappa is not None and getattr(model, "by_surface", False):
-                up = model.predict_with_uncertainty(X, surface_class=surface_class(kappa))
-            else:
-                up = model.predict_with_uncertainty(X)
+            up = model.predict_with_uncertainty(X, surface_class=surf)
             pred = np.asarray(up.errors, dtype=np.float64)
             U = np.asarray(up.U, dtype=np.float64)
             if model.card.get("domain_mv"):  # (U is widened from distance 1 on, whatever the margin)
@@ -475,7 +477,8 @@ class ScanHandler:
                                  rescan_reason=one_profile)
         return ScanResult(deviations=dev, flags=flags, quality=quality, prepared=prepared, features=X,
                           predictions=pred, context=ctx, scan=scan, kept=kept, uncertainty=unc, row_uncertainty=U,
-                          decisions=decisions, shape_out_of_domain=shape_ood, model_id=model_id)
+                          decisions=decisions, shape_out_of_domain=shape_ood, surface_class=surf,
+                          model_id=model_id)
 
     def crop_rows(self, res: ScanResult, start: int, stop: int, settings_defaulted: bool = False) -> ScanResult:
         """The result of rows ``start:stop`` of an organized scan judged whole (a profile stream's chunk judged with
@@ -526,7 +529,8 @@ class ScanHandler:
                         uncertainty=None if res.uncertainty is None else res.uncertainty[sl],
                         row_uncertainty=None if res.row_uncertainty is None else res.row_uncertainty[m],
                         decisions=decisions,
-                        shape_out_of_domain=None if res.shape_out_of_domain is None else res.shape_out_of_domain[m])
+                        shape_out_of_domain=None if res.shape_out_of_domain is None else res.shape_out_of_domain[m],
+                        surface_class=None if res.surface_class is None else res.surface_class[m])
 
     @staticmethod
     def _principal_curvatures(prepared: Any, model: Any) -> np.ndarray | None:

@@ -41,6 +41,8 @@ class JudgedScan:
         settings, pose, scanner_id, model_id: how it was taken and judged.
         uncertainty: (M, 3) mm published U of those points (None / NaN: none); kept for reference only, the
             explainer recomputes U from the features.
+        surface_class: (M,) int8 surface class whose multipliers each point's U took (None: the card has none);
+            the explainer of U keeps each point's class.
     """
 
     stamp_ns: int
@@ -57,6 +59,7 @@ class JudgedScan:
     model_id: str
     uncertainty: np.ndarray | None = None
     cad_pose: np.ndarray | None = None  # (4, 4) mm, part → scan frame, of the CAD map of this scan (None: no CAD)
+    surface_class: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         # Kept for every judged scan in the history: only what the services need, compactly.
@@ -163,12 +166,13 @@ def explain_rows(model_set: Any, judged: JudgedScan, rows: np.ndarray, axes: tup
 
     The players are the model's features, plus ``set_context`` (the other points of the point's PointNet set; its
     value is how many distinct other points that set holds) when the model has a set member
-    (``attribution.explain_in_cloud``).
+    (``attribution.explain_in_cloud``), plus ``surface_class`` (its value: the point's class index) when U is
+    explained for a card calibrated per class.
 
     ``output="uncertainty"`` explains the published expanded uncertainty U instead of the error (which features
     make a point uncertain): predictions = base + Σ SHAP = U. ServiceError when the model set has no calibration.
     """
-    from .attribution import SET_CONTEXT, explain_in_cloud
+    from .attribution import SET_CONTEXT, SURFACE_CLASS, explain_in_cloud
 
     feats = judged.features
     finite = np.isfinite(feats).all(axis=1)
@@ -177,7 +181,9 @@ def explain_rows(model_set: Any, judged: JudgedScan, rows: np.ndarray, axes: tup
     if output == "uncertainty" and not getattr(model_set, "calibrated", False):
         raise ServiceError(f"model set {getattr(model_set, 'id', '?')!r} has no uncertainty calibration: "
                            "no U to explain")
-    res = explain_in_cloud(model_set, feats[finite], cloud_row[rows], None, axes=axes, output=output)
+    surf = judged.surface_class
+    res = explain_in_cloud(model_set, feats[finite], cloud_row[rows], None, axes=axes, output=output,
+                           surface_class=None if surf is None else np.asarray(surf)[finite])
     X = feats[rows].astype(np.float64)
     names = list(model_set.feature_names)
     units = list(model_set.feature_units)
@@ -189,6 +195,10 @@ def explain_rows(model_set: Any, judged: JudgedScan, rows: np.ndarray, axes: tup
         X = np.column_stack([X, sizes[set_of[cloud_row[rows]]] - 1.0])
         names.append(SET_CONTEXT)
         units.append("points")
+    if res.feature_names[-1] == SURFACE_CLASS:  # U explained with the points' classes: the class is a player
+        X = np.column_stack([X, np.asarray(surf)[rows].astype(np.float64)])
+        names.append(SURFACE_CLASS)
+        units.append("class index (judge/surface_class.py; -1 none)")
     shap_vals = np.asarray(res.shap, dtype=np.float64)
     return {
         "base_values": np.asarray(res.base_values, dtype=np.float64),

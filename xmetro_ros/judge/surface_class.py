@@ -1,4 +1,4 @@
-"""The surface class of each point from its two principal curvatures: flat, convex, concave or saddle.
+"""The surface class of each point from its two principal curvatures: flat, convex, concave, saddle or sharp.
 
 Why: the spread of the scanner's error on a surface depends on its shape as well as on the incidence and the
 exposure (a wide flat face at short exposure is noisier relative to the model's σ̂ than a sphere seen at the same
@@ -7,7 +7,9 @@ computes the conformal multiplier per condition *and* per surface class when it 
 classes, and the judge looks up each point's class here.
 
 Classes from (κmin, κmax) in 1/mm (:func:`xmetro_ros.preprocess.curvature.grid_principal_curvatures`, convex
-positive) and the threshold t = ``FLAT_CURVATURE_PER_MM``:
+positive), the threshold t = ``FLAT_CURVATURE_PER_MM`` and the sharp threshold s = ``SHARP_CURVATURE_PER_MM``:
+* ``sharp`` (4): |κmin| > s or |κmax| > s (a radius under 10 mm either way: a fillet, an edge, an inner fillet),
+  whatever the signs; otherwise
 
 * ``flat`` (0): |κmin| ≤ t and |κmax| ≤ t (radius of curvature ≥ 50 mm both ways);
 * ``convex`` (1): κmax > t and κmin ≥ −t (a sphere, a cylinder, an outer edge or fillet);
@@ -17,7 +19,12 @@ positive) and the threshold t = ``FLAT_CURVATURE_PER_MM``:
   multiplier calibrated over all classes.
 
 t = 0.02 /mm: above the curvature noise of a plane (90 % of a plane's points within ±0.015 /mm at 0.1 ms, the
-noisiest exposure), below the largest radius of the study's artifacts (1/27.5 mm = 0.036 /mm).
+noisiest exposure), below the largest radius of the study's artifacts (1/27.5 mm = 0.036 /mm). s = 0.1 /mm: above
+the most curved of them (the cylinder r 15 mm, 0.067 /mm), below the calibration ridge's R 2 mm fillets
+(0.5 /mm): without it a sphere's points would share their multiplier with fillets, whose X and Y errors the model
+predicts worse (the sphere's U in X widened by ~25 % at low incidence).
+A card records the thresholds and classes it was calibrated with (``conditional.by_surface``);
+:func:`card_surface_class` classifies with those, so a card calibrated before the sharp class keeps its four.
 
 The same (κmin, κmax) plane holds the shape part of the model's domain when the card has one
 (``domain_shape.principal``: the cells its calibration points occupy, :func:`out_of_principal_domain`).
@@ -27,16 +34,18 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["FLAT_CURVATURE_PER_MM", "SURFACE_CLASSES", "out_of_principal_domain", "principal_domain_grid",
-           "surface_class"]
+__all__ = ["FLAT_CURVATURE_PER_MM", "SHARP_CURVATURE_PER_MM", "SURFACE_CLASSES", "card_surface_class",
+           "out_of_principal_domain", "principal_domain_grid", "surface_class"]
 
-SURFACE_CLASSES = ("flat", "convex", "concave", "saddle")
+SURFACE_CLASSES = ("flat", "convex", "concave", "saddle", "sharp")
 FLAT_CURVATURE_PER_MM = 0.02
+SHARP_CURVATURE_PER_MM = 0.1
 
 
-def surface_class(kappa: np.ndarray, flat: float = FLAT_CURVATURE_PER_MM) -> np.ndarray:
+def surface_class(kappa: np.ndarray, flat: float = FLAT_CURVATURE_PER_MM,
+                  sharp: float | None = SHARP_CURVATURE_PER_MM) -> np.ndarray:
     """(M,) int8 class (index into SURFACE_CLASSES, −1: none) of the (M, 2) principal curvatures (κmin, κmax)
-    in 1/mm; ``flat`` the threshold t (1/mm)."""
+    in 1/mm; ``flat`` the threshold t, ``sharp`` the threshold s (1/mm; None: no sharp class, the first four)."""
     k = np.asarray(kappa, np.float64).reshape(-1, 2)
     lo, hi = k[:, 0], k[:, 1]
     out = np.full(len(k), -1, np.int8)
@@ -47,7 +56,20 @@ def surface_class(kappa: np.ndarray, flat: float = FLAT_CURVATURE_PER_MM) -> np.
         out[ok & up & ~down] = 1
         out[ok & ~up & down] = 2
         out[ok & up & down] = 3
+        if sharp is not None:
+            out[ok & (np.maximum(np.abs(lo), np.abs(hi)) > sharp)] = 4
     return out
+
+
+def card_surface_class(kappa: np.ndarray, by_surface: dict) -> np.ndarray:
+    """(M,) int8 classes of the (M, 2) principal curvatures (1/mm) with the classes and thresholds a card was
+    calibrated with (its ``uncertainty.conditional.by_surface`` block); ValueError for classes this version does
+    not know."""
+    names = list(by_surface["classes"])
+    if names not in (list(SURFACE_CLASSES), list(SURFACE_CLASSES[:4])):
+        raise ValueError(f"surface classes {names} of the card are not {list(SURFACE_CLASSES)} (or its first four)")
+    sharp = float(by_surface["sharp_curvature_per_mm"]) if "sharp" in names else None
+    return surface_class(kappa, float(by_surface["flat_curvature_per_mm"]), sharp)
 
 
 def principal_domain_grid(block: dict) -> tuple[np.ndarray, float, float]:

@@ -187,14 +187,15 @@ def conditional_multipliers(X: np.ndarray, feature_names: list[str], res: np.nda
            "min_points": MIN_POINTS,
            "cell": "incidence bin * (len(exposure_edges_ms) - 1) + exposure bin"}
     if surface_class is not None:
-        from ..judge.surface_class import FLAT_CURVATURE_PER_MM, SURFACE_CLASSES
+        from ..judge.surface_class import FLAT_CURVATURE_PER_MM, SHARP_CURVATURE_PER_MM, SURFACE_CLASSES
         from ..preprocess.curvature import RADIUS_MM
 
         cls = np.asarray(surface_class, np.int64)
         per = [_cell_multipliers(np.where(cls == k, cell, -1), n_cells, n_inc, res, sig, ok, confidence, envelope)
                for k in range(len(SURFACE_CLASSES))]
         out["by_surface"] = {
-            "classes": list(SURFACE_CLASSES), "flat_curvature_per_mm": FLAT_CURVATURE_PER_MM, "radius_mm": RADIUS_MM,
+            "classes": list(SURFACE_CLASSES), "flat_curvature_per_mm": FLAT_CURVATURE_PER_MM,
+            "sharp_curvature_per_mm": SHARP_CURVATURE_PER_MM, "radius_mm": RADIUS_MM,
             "measure": "principal curvatures from normals radius_mm apart on the scan grid "
                        "(xmetro_ros.preprocess.curvature, xmetro_ros.judge.surface_class)",
             "multiplier": [p[0] for p in per], "own_multiplier": [p[1] for p in per], "n": [p[2] for p in per],

@@ -8,7 +8,9 @@ per axis and per incidence-angle / exposure bin, mean U against the oracle half-
 rank correlation of U with the true std. test/test_uncertainty.py asserts the acceptance figures on this run.
 
 ``--shipped``: judge the packaged default model set instead (trained on spheres Ø35/45/55 and a cylinder r 20 mm,
-campaign seed 0; calibrated on seed 1000) on a sphere Ø40 and a cylinder r 15 mm simulated with seed 3.
+campaign seed 0; calibrated on seed 1000 and on the calibration surfaces) on a sphere Ø40 and a cylinder r 15 mm
+simulated with seed 3, each point's U of its surface class (``--all-class``: the all-class multipliers, as for a
+point without a class).
 """
 
 from __future__ import annotations
@@ -75,14 +77,27 @@ def run(out_dir: str | Path, epochs: int = 60, train_points: int = 600, seed: in
             "pred": pred, "metrics": metrics}
 
 
-def evaluate_shipped(model_dir: str | Path | None = None) -> dict[str, Any]:
-    """The shipped (or ``model_dir``) model set's calibrated intervals on SHIPPED_TEST_ARTIFACTS, seed 3."""
+def evaluate_shipped(model_dir: str | Path | None = None, surface_classes: bool = True) -> dict[str, Any]:
+    """The shipped (or ``model_dir``) model set's calibrated intervals on SHIPPED_TEST_ARTIFACTS, seed 3.
+
+    With ``surface_classes`` (and a card calibrated per surface class) each row takes the multiplier of its class,
+    from the principal curvatures of its scan's grid, as the node publishes U for an organized scan; without, every
+    row takes the all-class multiplier, as for a point without a class (an unorganized scan, a scan border)."""
+    from .calibration_set import calibration_set
+
     ms = ModelSet.load(model_dir)
-    te = _table(SHIPPED_TEST_ARTIFACTS, 3, 400, ScannerModel.load())
-    pred = predict_clouds(ms, te.X, te.cloud_id)
+    sc = ScannerModel.load()
+    items = study_campaign(sc, seed=3, artifacts=list(SHIPPED_TEST_ARTIFACTS))
+    # calibration_set draws the same rows as _table (build_table's draw) and gives each its surface class
+    cs = calibration_set((it.simulate() for it in items), list(STUDY_FEATURES), max_points_per_cloud=400, seed=3,
+                         scanner=sc)
+    te = cs.table
+    per_class = surface_classes and bool(ms.card["uncertainty"].get("conditional", {}).get("by_surface"))
+    pred = predict_clouds(ms, te.X, te.cloud_id, surface_class=ms.surface_classes(cs.kappa) if per_class else None)
     metrics = interval_metrics(pred["errors"], pred["U"], te.y, te.oracle_std,
                                bins=bins_for(te.X, list(STUDY_FEATURES)))
-    return {"test": te, "model_set": ms, "calibration": ms.card["uncertainty"], "pred": pred, "metrics": metrics}
+    return {"test": te, "model_set": ms, "calibration": ms.card["uncertainty"], "pred": pred, "metrics": metrics,
+            "surface_class": ms.surface_classes(cs.kappa), "per_class": per_class}
 
 
 def markdown(metrics: dict, calibration: dict) -> str:
@@ -113,8 +128,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--epochs", type=int, default=60)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--shipped", action="store_true", help="judge the packaged default model set (no training)")
+    ap.add_argument("--all-class", action="store_true",
+                    help="with --shipped: every point takes the all-class multipliers (no surface class)")
     a = ap.parse_args(argv)
-    r = evaluate_shipped() if a.shipped else run(Path(a.out) / "model", epochs=a.epochs, seed=a.seed)
+    r = (evaluate_shipped(surface_classes=not a.all_class) if a.shipped
+         else run(Path(a.out) / "model", epochs=a.epochs, seed=a.seed))
     text = markdown(r["metrics"], r["calibration"])
     Path(a.out).mkdir(parents=True, exist_ok=True)
     (Path(a.out) / "metrics.json").write_text(json.dumps({"metrics": r["metrics"], "calibration": r["calibration"]},

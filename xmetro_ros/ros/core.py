@@ -370,7 +370,8 @@ class XmetroCore:
             stamp_ns=stamp_ns, frame_id=msg.header.frame_id, n_points=out_h * out_w,
             index=np.asarray(res.prepared.index), points=np.asarray(res.prepared.points), features=res.features,
             predictions=res.predictions, context=_lean_context(res.context), settings=entry.settings, pose=entry.pose,
-            scanner_id=self.scanner.id, model_id=res.model_id, uncertainty=res.row_uncertainty, cad_pose=cad_pose))
+            scanner_id=self.scanner.id, model_id=res.model_id, uncertainty=res.row_uncertainty, cad_pose=cad_pose,
+            surface_class=res.surface_class))
         q.processing_latency = time.monotonic() - t0
         qd = res.quality
         # A line a person reads: the scan by its time (s) and frame, its errors and U in µm (SI stays on the topics).
