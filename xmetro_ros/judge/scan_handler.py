@@ -229,8 +229,9 @@ class ScanResult:
 
 def warm_up() -> float:
     """Compile, or load from numba's on-disk cache, the compiled kernels of the judge path (grid pre-processing,
-    summary statistics) so the first scan does not pay for it: 0.5-1 s per process from numba's disk cache, 6-30 s
-    (machine load) on the very first run of an installation (docs/performance.md). Returns the seconds taken."""
+    summary statistics) so the first scan does not pay for it: 0.5-1 s per process from numba's disk cache; on the
+    very first run of an installation (empty cache) the node took 116-118 s to be ready on this 2-core machine,
+    idle (0.7.3, `xmetro_node` with NUMBA_CACHE_DIR empty). Returns the seconds taken."""
     import time
 
     from ..preprocess import curvature, grid_kernels
