@@ -518,7 +518,12 @@ class ModelSet:
     def by_surface(self) -> bool:
         """True when U is calibrated per surface class too (card ``uncertainty.conditional.by_surface``): the judge
         then gives :meth:`predict_with_uncertainty` each point's class (:mod:`.surface_class`)."""
-        return bool(((self.card.get("uncertainty") or {}).get("conditional") or {}).get("by_surface"))
+        return bool(self._by_surface_block)
+
+    @property
+    def _by_surface_block(self) -> dict | None:
+        """The card's ``uncertainty.conditional.by_surface`` block (None: not calibrated per class)."""
+        return ((self.card.get("uncertainty") or {}).get("conditional") or {}).get("by_surface")
 
     def surface_classes(self, kappa: np.ndarray) -> np.ndarray:
         """(M,) int8 surface class of each point from its (M, 2) principal curvatures (1/mm), with the classes and
@@ -526,7 +531,7 @@ class ModelSet:
         multiplier) for a card not calibrated per class."""
         from .surface_class import card_surface_class
 
-        by = ((self.card.get("uncertainty") or {}).get("conditional") or {}).get("by_surface")
+        by = self._by_surface_block
         if not by:
             return np.full(len(np.asarray(kappa).reshape(-1, 2)), -1, np.int8)
         return card_surface_class(kappa, by)

@@ -93,11 +93,12 @@ def evaluate_shipped(model_dir: str | Path | None = None, surface_classes: bool 
                          scanner=sc)
     te = cs.table
     per_class = surface_classes and bool(ms.card["uncertainty"].get("conditional", {}).get("by_surface"))
-    pred = predict_clouds(ms, te.X, te.cloud_id, surface_class=ms.surface_classes(cs.kappa) if per_class else None)
+    cls = ms.surface_classes(cs.kappa)
+    pred = predict_clouds(ms, te.X, te.cloud_id, surface_class=cls if per_class else None)
     metrics = interval_metrics(pred["errors"], pred["U"], te.y, te.oracle_std,
                                bins=bins_for(te.X, list(STUDY_FEATURES)))
     return {"test": te, "model_set": ms, "calibration": ms.card["uncertainty"], "pred": pred, "metrics": metrics,
-            "surface_class": ms.surface_classes(cs.kappa), "per_class": per_class}
+            "surface_class": cls, "per_class": per_class}
 
 
 def markdown(metrics: dict, calibration: dict) -> str:
