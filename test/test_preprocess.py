@@ -6,9 +6,13 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
 
 from xmetro_ros import preprocess as pp
 from xmetro_ros.preprocess import knn as pp_knn
+from xmetro_ros.preprocess import points as pp_points
 from xmetro_ros.scan.artifacts import Cylinder, Sphere
 from xmetro_ros.scan.geometry import HeadPose
 from xmetro_ros.scan.scan import Scan
@@ -98,6 +102,15 @@ def test_dedupe_exact():
     first, inv = pp.dedupe(p)
     assert len(first) == 501  # 500 distinct + the zero point
     assert np.array_equal(p[first][inv], p)
+
+
+@settings(max_examples=200, deadline=None)
+@given(hnp.arrays(np.float64, st.tuples(st.integers(1, 40), st.just(3)),
+                  elements=st.sampled_from([0.0, -0.0, 1.0, -1.0, 0.5, 2.0, 1e-300, np.pi])))
+def test_has_duplicates_agrees_with_dedupe(p):
+    """The unorganized path skips dedupe when no two points are equal: the check must say so exactly (signed zeros
+    equal, as dedupe counts them)."""
+    assert pp_points.has_duplicates(p) == (len(pp.dedupe(p)[0]) < len(p))
 
 
 def _inject(scan: Scan, n: int, lo: float, hi: float, seed: int = 1) -> tuple[Scan, np.ndarray]:

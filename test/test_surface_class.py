@@ -6,6 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as hst
+from hypothesis.extra import numpy as hnp
 
 from xmetro_ros.judge.conditions import multiplier_table, row_multipliers
 from xmetro_ros.judge.set_kernels import expand_u_conditional
@@ -85,6 +88,24 @@ def test_surface_class_thresholds() -> None:
     assert card_surface_class(k, five).tolist() == [0, 1, 2, 3, -1, 0, 4, 2, 3, 1]
     with pytest.raises(ValueError, match="surface classes"):
         card_surface_class(k, {**four, "classes": ["flat", "edge"]})
+
+
+@settings(max_examples=150, deadline=None)
+@given(hnp.arrays(np.float64, hst.tuples(hst.integers(1, 30), hst.just(2)),
+                  elements=hst.one_of(hst.floats(-1.0, 1.0), hst.sampled_from([np.nan, np.inf, -np.inf, 1e300, -0.4,
+                                                                           0.4, 0.0]))),
+       hnp.arrays(np.bool_, hst.tuples(hst.integers(1, 12), hst.integers(1, 12)).map(lambda t: (t[0], t[0]))))
+def test_principal_domain_check_is_the_documented_rule(kappa, grid) -> None:
+    """The compiled check against the rule written out in numpy: flagged = finite (κmin, κmax) whose cell
+    floor((κ − lo) / bin) is off the grid or unoccupied; NaN / inf curvature never flagged."""
+    lo, b = -0.4, 0.8 / grid.shape[0]
+    ok = np.isfinite(kappa).all(axis=1)
+    with np.errstate(invalid="ignore"):
+        ij = np.floor((kappa - lo) / b)
+    inside = ok & (ij >= 0).all(axis=1) & (ij < grid.shape[0]).all(axis=1)
+    hit = np.zeros(len(kappa), bool)
+    hit[inside] = grid[ij[inside, 0].astype(np.int64), ij[inside, 1].astype(np.int64)]
+    assert out_of_principal_domain(kappa, grid, lo, b).tolist() == (ok & ~hit).tolist()
 
 
 def test_principal_domain_keeps_what_calibration_saw_and_flags_the_rest() -> None:

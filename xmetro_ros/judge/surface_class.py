@@ -33,6 +33,9 @@ The same (κmin, κmax) plane holds the shape part of the model's domain when th
 from __future__ import annotations
 
 import numpy as np
+from numba import njit, prange
+
+from ..compute import threads as _threads  # noqa: F401 - the threading layer, before any parallel kernel runs
 
 __all__ = ["FLAT_CURVATURE_PER_MM", "SHARP_CURVATURE_PER_MM", "SURFACE_CLASSES", "card_surface_class",
            "out_of_principal_domain", "principal_domain_grid", "surface_class"]
@@ -84,14 +87,25 @@ def principal_domain_grid(block: dict) -> tuple[np.ndarray, float, float]:
 
 def out_of_principal_domain(kappa: np.ndarray, grid: np.ndarray, lo: float, bin_per_mm: float) -> np.ndarray:
     """(M,) bool: points whose (κmin, κmax) (M, 2) 1/mm falls in no occupied cell of ``grid`` (or off it); NaN
-    curvature (no class) is not flagged."""
-    k = np.asarray(kappa, np.float64).reshape(-1, 2)
-    ok = np.isfinite(k).all(axis=1)
-    with np.errstate(invalid="ignore"):
-        ij = np.floor((k - lo) / bin_per_mm)
+    curvature (no class) is not flagged. One compiled pass over the points (it is on the judge's hot path: ~1 ms
+    for 167k points against 14 ms for the same rule in numpy's several passes)."""
+    k = np.ascontiguousarray(np.asarray(kappa, np.float64).reshape(-1, 2))
+    return _out_of_cells(k, np.ascontiguousarray(grid, np.bool_), float(lo), float(bin_per_mm))
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _out_of_cells(k: np.ndarray, grid: np.ndarray, lo: float, bin_per_mm: float) -> np.ndarray:
+    """:func:`out_of_principal_domain`'s rule, row by row (each row its own answer: any thread count)."""
     n = grid.shape[0]
-    inside = ok & (ij >= 0).all(axis=1) & (ij < n).all(axis=1)
-    hit = np.zeros(len(k), bool)
-    ii = ij[inside].astype(np.int64)
-    hit[inside] = grid[ii[:, 0], ii[:, 1]]
-    return ok & ~hit
+    out = np.zeros(k.shape[0], np.bool_)
+    for r in prange(k.shape[0]):
+        a, b = k[r, 0], k[r, 1]
+        if not (np.isfinite(a) and np.isfinite(b)):
+            continue
+        fi = np.floor((a - lo) / bin_per_mm)
+        fj = np.floor((b - lo) / bin_per_mm)
+        if fi < 0 or fj < 0 or fi >= n or fj >= n:
+            out[r] = True
+        else:
+            out[r] = not grid[np.int64(fi), np.int64(fj)]
+    return out

@@ -8,7 +8,7 @@ from numba import njit, prange
 
 from ..compute import threads as _threads  # the threading layer, before any parallel kernel runs
 from .knn_grid import knn_grid
-from .points import dedupe
+from .points import dedupe, has_duplicates
 
 
 def _knn(points: np.ndarray, k: int, workers: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -214,11 +214,11 @@ def _knn_unorganized(
     normal_neighbors), SOR keep mask, normals among the kept points (all points when ``remove`` is False). Returns
     (keep (N,) bool, normals (N, 3) float32 | None, quality (N,) float32 | None); duplicates share their point's
     verdict and normal; the normals of removed points (remove=True) are NaN."""
-    first, inv = dedupe(points)
-    inverse: np.ndarray | slice = inv
-    if len(first) == len(points):  # no duplicates: keep the input order and skip the gathers back
+    inverse: np.ndarray | slice
+    if not has_duplicates(points):  # keep the input order and skip dedupe's sort and the gathers back
         pu, inverse = np.ascontiguousarray(points, dtype=np.float64), slice(None)
     else:
+        first, inverse = dedupe(points)
         pu = np.ascontiguousarray(points[first], dtype=np.float64)
     u = len(pu)
     keep_u = np.ones(u, dtype=bool)
