@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from rcl_interfaces.msg import Log
 from rclpy.parameter import Parameter
-from sensor_msgs.msg import PointField
+from sensor_msgs.msg import PointCloud2, PointField
 from test_node_helpers import (
     TIMEOUT,
     NodeClient,
@@ -395,3 +395,36 @@ def test_services(rig):
     r4 = call_service(recommend, req4, timeout=TIMEOUT)
     assert not r4.success and "candidate 0" in r4.message
     assert stamp_ns_of(msg) == 40 * S
+
+
+def test_corrected_is_built_only_while_someone_takes_it(rig, monkeypatch):
+    """``~/corrected`` (~10 MB a 167k-point scan) is built and published only while it has a subscriber, as drivers
+    do with the clouds nobody takes; ``~/deviations`` and ``~/quality`` are published regardless, and a subscriber
+    that comes back gets the next scan's corrected cloud."""
+    from xmetro_ros.ros import core as core_mod
+
+    node, client, tester = rig
+    client.pub_settings.publish(settings_msg(sim_scan(60 * S), 59 * S))
+    built: list[int] = []
+    real = core_mod.corrected_cloud
+
+    def counting(*a, **kw):
+        built.append(1)
+        return real(*a, **kw)
+
+    monkeypatch.setattr(core_mod, "corrected_cloud", counting)
+    i = next(k for k, s in enumerate(client.subs) if s.topic_name.endswith("/corrected"))
+    tester.destroy_subscription(client.subs[i])
+    try:
+        assert wait_for(lambda: node.pub_corr.get_subscription_count() == 0, TIMEOUT)
+        q, _, _ = client.send(cloud_of(sim_scan(61 * S)), outputs=False)
+        assert q.error_code == ScanQuality.ERROR_NONE, q.message
+        assert wait_for(lambda: client._find("deviations", 61 * S) is not None, TIMEOUT)
+        assert built == [] and client._find("corrected", 61 * S) is None
+    finally:
+        qos = client.subs[0].qos_profile
+        client.subs[i] = tester.create_subscription(PointCloud2, f"/{client.target}/corrected",
+                                                    client._add("corrected"), qos)
+    client.wait_matched(node)
+    _, dev, corr = client.send(cloud_of(sim_scan(62 * S)))
+    assert built == [1] and corr is not None and corr.width * corr.height == dev.width * dev.height

@@ -16,7 +16,8 @@ Topics (names relative to the node; ``~`` = the node's private namespace):
 - pub ``~/deviations`` (PointCloud2: x, y, z, dx, dy, dz, dnorm, ux, uy, uz float32 metres, flags uint16,
   point_step 44 with every field aligned; one point per input point, same height × width; predicted deviation d =
   measured − nominal, U its expanded uncertainty at 95 %), ``~/corrected`` (the input cloud, same fields, with
-  x, y, z − d, residual uncertainty U; points without a prediction unchanged), ``~/quality``
+  x, y, z − d, residual uncertainty U; points without a prediction unchanged; built and published only while it
+  has a subscriber), ``~/quality``
   (ScanQuality), ``/diagnostics`` (DiagnosticArray, every ``diagnostics_period`` and at once on a level change).
 - sub ``reference_scan`` (PointCloud2, as ``scan``): scans of the reference sphere (``reference_radius``,
   ``reference_center``): judged like any scan, then checked against the certified sphere and fed to the drift
