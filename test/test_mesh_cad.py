@@ -30,6 +30,8 @@ def test_compensation_lowers_the_deviation_error_against_cad(handler: ScanHandle
     1.24-1.62); the intervals cover ≥ 90 % of the in-domain points, overall and per region type (types with ≥ 100
     in-domain points), and the points the shape domain flags are where they fail most."""
     r = evaluate_part(part, handler, ScanSettings(6.0, 3.0, 0.5), seed=7, register=False)
+    # a scan the compensation improves is not sent back (issue 28 saw RESCAN or WARN on parts like these)
+    assert r["verdict"] == "OK", r["verdict_message"]
     kp = r["cad"]["known_pose"]
     assert kp["after"]["mae_um"] < kp["before"]["mae_um"] / 1.2
     assert kp["after"]["p95_um"] < kp["before"]["p95_um"] / 1.15

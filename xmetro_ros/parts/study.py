@@ -105,6 +105,8 @@ def evaluate_part(name: str, handler: Any, settings: Any, *, seed: int = 0, form
     out: dict[str, Any] = {
         "part": name, "settings": [settings.lateral_density, settings.direction_density, settings.exposure_ms],
         "seed": seed, "form_um": form_um, "points": len(i), "injected_outliers_excluded": int(inj.sum()),
+        # the scan's verdict as the node publishes it (ScanQuality), and why
+        "verdict": res.quality["verdict_name"], "verdict_message": res.quality["message"],
         "model": model, "oracle": oracle,
         "mae_ratio_to_oracle": [m / o if o > 0 else None for m, o in zip(model["mae_um"], oracle["mae_um"],
                                                                           strict=True)],
@@ -260,8 +262,8 @@ def markdown(summary: dict[str, Any]) -> str:
     lines = [f"Model set `{summary['model']}`, seed {summary['seed']}, form error ±{summary['form_um']:g} µm.", "",
              "| part | settings | points | MAE model / oracle X, Y, Z (µm) | coverage all / in / out of domain "
              "| out-of-domain share (points / misses) | CAD known pose: MAE, p95 before → after (µm) | factor MAE, p95 "
-             "| registered: factor MAE, p95; pose error |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| registered: factor MAE, p95; pose error | verdict |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for name, rows in summary["parts"].items():
         for r in rows:
             c, kp, rg = r["coverage"], r["cad"]["known_pose"], r["cad"].get("registered")
@@ -275,7 +277,8 @@ def markdown(summary: dict[str, Any]) -> str:
                 f"{_pct(c['all']['coverage'])} / {_pct(c['in_domain']['coverage'])} / "
                 f"{_pct(c['out_of_domain']['coverage'])} | {_pct(r['out_of_domain_share'])} / {_pct(miss)} | "
                 f"{kp['before']['mae_um']:.2f} → {kp['after']['mae_um']:.2f}, {kp['before']['p95_um']:.2f} → "
-                f"{kp['after']['p95_um']:.2f} | {kp['factor_mae']:.2f}, {kp['factor_p95']:.2f} | {reg} |")
+                f"{kp['after']['p95_um']:.2f} | {kp['factor_mae']:.2f}, {kp['factor_p95']:.2f} | {reg} | "
+                f"{r.get('verdict', '—')} |")
     lines += ["", "The shape part of the domain (mean curvature outside the calibration's shapes; U not widened "
               "there): coverage where the shape is in / out of the domain, and the out-of-domain share of the points "
               "and of the misses (point, axis pairs outside U):", "",
@@ -327,8 +330,9 @@ def _condense(summary: dict[str, Any]) -> dict[str, Any]:
     out["parts"] = {}
     for name, rows in summary["parts"].items():
         out["parts"][name] = [{
-            "settings": r["settings"], "points": r["points"], "mae_ratio_to_oracle": r["mae_ratio_to_oracle"],
-            "coverage": r["coverage"]["all"]["coverage"], "coverage_in_domain": r["coverage"]["in_domain"]["coverage"],
+            "settings": r["settings"], "points": r["points"], "verdict": r.get("verdict"),
+            "mae_ratio_to_oracle": r["mae_ratio_to_oracle"], "coverage": r["coverage"]["all"]["coverage"],
+            "coverage_in_domain": r["coverage"]["in_domain"]["coverage"],
             "coverage_out_of_domain": r["coverage"]["out_of_domain"]["coverage"],
             "coverage_in_domain_xyz": r["coverage"]["in_domain"]["coverage_xyz"],
             "normal_coverage": r["cad"]["known_pose"]["normal_coverage"],
