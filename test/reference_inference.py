@@ -106,20 +106,41 @@ def domain_distance(ms, X: np.ndarray) -> np.ndarray:
         return np.full(len(X), np.nan)
     w = np.asarray(dom["whiten"], np.float64) / float(dom["threshold"])
     w, b = w.astype(np.float32), (np.asarray(dom["mean"], np.float64) @ w).astype(np.float32)
-    # numpy's einsum loop, not a BLAS GEMM: a row's distance does not depend on the rows beside it (0.7.2)
+    # The one arithmetic ModelSet uses since 0.7.4 (set_kernels.whitened_norm), written out in numpy: every row alone,
+    # z_j = Σ_i x_i·w_ij over i ascending, then Σ_j (z_j − b_j)² over j ascending, float32, each product and sum
+    # rounded on its own (numpy's element-wise float32 operations; no fused multiply-add), then the square root.
+    X = np.asarray(X, np.float32)
+    z = np.zeros((len(X), w.shape[1]), np.float32)
+    for i in range(X.shape[1]):
+        z += X[:, i:i + 1] * w[i]
+    s = np.zeros(len(X), np.float32)
+    for j in range(w.shape[1]):
+        zj = z[:, j] - b[j]
+        s += zj * zj
+    return np.sqrt(s)
+
+
+def domain_distance_einsum(ms, X: np.ndarray) -> np.ndarray:
+    """The domain distance as 0.7.2-0.7.3 computed it (numpy's einsum loops; other last bits than
+    :func:`domain_distance`): what bench/bench_uncertainty.py times the compiled pass against."""
+    dom = ms.card["domain_mv"]
+    w = np.asarray(dom["whiten"], np.float64) / float(dom["threshold"])
+    w, b = w.astype(np.float32), (np.asarray(dom["mean"], np.float64) @ w).astype(np.float32)
     z = np.einsum("ij,jk->ik", np.asarray(X, np.float32), w)
     z -= b
     return np.sqrt(np.einsum("ij,ij->i", z, z))
 
 
-def predict_with_uncertainty(ms, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(errors, U, sigma, domain_distance) as ``ModelSet.predict_with_uncertainty`` computed them."""
+def predict_with_uncertainty(ms, X: np.ndarray, distance=domain_distance
+                             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(errors, U, sigma, domain_distance) as ``ModelSet.predict_with_uncertainty`` computed them (``distance``:
+    the domain distance's implementation)."""
     X = np.asarray(X, dtype=np.float32)
     err, sig = predict_with_sigma(ms, X)
     # The one change to the verbatim reference: a card calibrated per condition (incidence x exposure) has a
     # multiplier per row, looked up by the ModelSet (judge/conditions.py); the arithmetic below is the reference's.
     mult = ms.multipliers(X)
-    dist = domain_distance(ms, X)
+    dist = distance(ms, X)
     with np.errstate(invalid="ignore"):
         widen = np.where(dist > 1.0, dist, 1.0)
     floor = float(ms.card["uncertainty"].get("sigma_floor_mm", 0.0))

@@ -31,8 +31,6 @@ from __future__ import annotations
 import hashlib
 import json
 import threading
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -40,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from ..compute.threads import block_bounds, parallel_for
+from ..compute.threads import parallel_for
 from ..scan.resources import default_model_dir
 from .conditions import interior_edges, multiplier_table, row_multipliers
 from .pointsets import set_order
@@ -50,6 +48,7 @@ from .set_kernels import finite_rows as _finite_rows
 from .set_kernels import from_sets as _from_sets
 from .set_kernels import to_sets as _to_sets
 from .set_kernels import warm_up as _warm_kernels
+from .set_kernels import whitened_norm
 
 __all__ = ["AXES", "CARD_FORMAT", "LEGACY_SCANNER_ID", "SIGMA_CAP_FACTOR", "ModelLoadError", "ModelSet",
            "UncertainPrediction", "load_pose_model", "model_scanner_id", "session_options", "update_card"]
@@ -63,28 +62,8 @@ _SET_CHUNK = 128
 # each: on 16 cores 1 or 2 per thread ran the 3,326 sets of the 55 mm sphere in 7.1-7.6 ms, 4 in 8.7, 8 in 14.5
 # (bench/results/onnx_side_by_side_16core.json).
 _CHUNKS_PER_THREAD = 2
-# The domain distance's rows are split over the threads in blocks of at least this many (smaller ones cost more in
-# hand-offs than they save).
-_MIN_BLOCK_ROWS = 4096
 #: σ̂ is capped at this multiple of the largest σ̂ of the calibration clouds (card ``uncertainty.sigma_max_mm``).
 SIGMA_CAP_FACTOR = 2.0
-
-
-_BLAS: list[Any] = []  # threadpoolctl's controller, made once (it scans the loaded libraries: ~10 ms)
-_BLAS_LOCK = threading.Lock()
-
-
-@contextmanager
-def _one_blas_thread() -> Iterator[None]:
-    """BLAS limited to one thread inside (threadpoolctl). The limit is process-wide and restored on exit: the lock
-    keeps two concurrent callers from restoring each other's limit (the products inside take ~1 ms)."""
-    with _BLAS_LOCK:
-        if not _BLAS:
-            from threadpoolctl import ThreadpoolController
-
-            _BLAS.append(ThreadpoolController())
-        with _BLAS[0].limit(limits=1, user_api="blas"):
-            yield
 
 
 def update_card(model_dir: str | Path, **blocks: Any) -> None:
@@ -315,29 +294,14 @@ class ModelSet:
         if not dom:
             return np.full(len(X), np.nan)
         if self._mv is None:
-            # float32 and the mean folded into a bias: z = X·W − mean·W is one GEMM on the raw rows; dividing W by
-            # the threshold gives the distance in threshold units directly.
+            # float32 and the mean folded into a bias: z = X·W − mean·W on the raw rows; dividing W by the threshold
+            # gives the distance in threshold units directly.
             w = np.asarray(dom["whiten"], np.float64) / float(dom["threshold"])
             self._mv = (w.astype(np.float32), (np.asarray(dom["mean"], np.float64) @ w).astype(np.float32))
         w, b = self._mv
-        X = np.asarray(X, np.float32)
-        out = np.empty(len(X), np.float32)
-        bounds = block_bounds(len(X), self.threads, _MIN_BLOCK_ROWS)
-
-        def block(i: int) -> None:
-            lo, hi = bounds[i]
-            # numpy's own sum-of-products loop, not BLAS: a row's bits do not depend on how many rows come with it
-            # (OpenBLAS picks other kernels for 1, 3 or 137 rows on some CPUs: the recommender's batch and a lone
-            # cloud then differed in the last bit); as fast here (28 against 31 ms for 170k rows)
-            z = np.einsum("ij,jk->ik", X[lo:hi], w)
-            z -= b
-            out[lo:hi] = np.sqrt(np.einsum("ij,ij->i", z, z))
-
-        # Row blocks side by side on the model set's threads (a BLAS-free product; the guard stays for numpy
-        # builds whose einsum would call BLAS): the same bits whatever the split (test_inference_sets.py).
-        with _one_blas_thread():
-            parallel_for(block, len(bounds), self.threads)
-        return out
+        # one compiled pass, each row alone in a fixed order (no BLAS: its kernels change a row's last bit with the
+        # rows beside it), on the numba threads of the caller's budget: the same bits at any count
+        return whitened_norm(X, w, b)
 
     def out_of_domain_mv(self, X: np.ndarray, distance: np.ndarray | None = None, margin: float = 0.0) -> np.ndarray:
         """(M,) bool: outside the multivariate domain (distance > threshold × (1 + ``margin``), the node's
