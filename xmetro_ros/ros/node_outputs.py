@@ -168,8 +168,9 @@ class OutputSet:
 def read_outputs(bag: str | Path, node_name: str = "xmetro_node") -> list[OutputSet]:
     """Group the node's outputs in ``bag`` per scan, in the order the qualities were written.
 
-    The node publishes ``~/deviations`` and ``~/corrected`` for every scan it could process (error code 0) and a
-    ``~/quality`` for every scan; the clouds are matched to the quality with the same header (stamp, frame), in order.
+    The node publishes ``~/deviations`` (and ``~/corrected`` while it has a subscriber, e.g. the recorder) for every
+    scan it could process (error code 0) and a ``~/quality`` for every scan; the clouds are matched to the quality
+    with the same header (stamp, frame), in order.
     """
     from ..bag.reader import BagReader
 
