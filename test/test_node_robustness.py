@@ -200,10 +200,10 @@ def test_watchdog_timeout_and_stalled_worker(rig):
     release = threading.Event()
     orig = node.core.judge
 
-    def slow_judge(msg, t0=None, deadline=None, **kw):
+    def slow_judge(msg, t0=None, deadline=None, reference=False, posed=None):
         if stamp_ns_of(msg) == stall:
             release.wait(60.0)
-        return orig(msg, t0, deadline, **kw)
+        return orig(msg, t0, deadline, reference=reference, posed=posed)
 
     node.core.judge = slow_judge
     try:

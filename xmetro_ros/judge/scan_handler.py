@@ -244,11 +244,10 @@ def warm_up() -> float:
     from ..preprocess import knn_grid
     from ..preprocess.knn import _knn_normals
     from ..preprocess.points import has_duplicates
+    from .surface_class import out_of_principal_domain
 
     knn_grid.warm_up()
     has_duplicates(np.zeros((2, 3)))
-    from .surface_class import out_of_principal_domain
-
     out_of_principal_domain(np.zeros((1, 2)), np.ones((1, 1), bool), 0.0, 1.0)
     _knn_normals(np.eye(3), np.arange(3), np.zeros((3, 3)), np.tile(np.arange(3), (3, 1)), np.ones(3, bool), 1.0)
     flags = np.array([0, 1, 3, 64], np.uint16)

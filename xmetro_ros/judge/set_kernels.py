@@ -5,6 +5,8 @@ Why compiled: numpy needs a boolean (M, F) temporary and a reduction for the fin
 (random reads) into set order, and a fancy-index scatter plus a separate float32 → float64 conversion (and a NaN-row
 scatter) for the way back; each kernel here is one pass over the rows. They only copy and convert (float32 →
 float64 is exact), so predictions are bit-identical to a numpy gather/scatter (test/test_inference_sets.py).
+The two computations on the same rows live here too: U from σ̂ (:func:`expand_u`, :func:`expand_u_conditional`)
+and the domain distance (:func:`whitened_norm`), each row alone in a fixed order.
 """
 
 from __future__ import annotations

@@ -37,6 +37,10 @@ def _orient(normals: np.ndarray, points: np.ndarray, toward: np.ndarray | None) 
     return normals
 
 
+#: Multipliers of the row hash of :func:`dedupe` and :func:`has_duplicates` (x, y, z bits), one per column.
+_ROW_HASH = (np.uint64(0x9E3779B97F4A7C15), np.uint64(0xC2B2AE3D27D4EB4F), np.uint64(0x165667B19E3779F9))
+
+
 @njit(cache=True, nogil=True)
 def _any_equal_rows(bits: np.ndarray) -> bool:
     """Whether two rows of ``bits`` (N, 3) uint64 are equal: one pass through an open-addressing table of row
@@ -48,8 +52,7 @@ def _any_equal_rows(bits: np.ndarray) -> bool:
     mask = np.uint64(size - 1)
     table = np.full(size, -1, np.int64)
     for i in range(n):
-        h = (bits[i, 0] * np.uint64(0x9E3779B97F4A7C15)) ^ (bits[i, 1] * np.uint64(0xC2B2AE3D27D4EB4F))
-        h ^= bits[i, 2] * np.uint64(0x165667B19E3779F9)
+        h = (bits[i, 0] * _ROW_HASH[0]) ^ (bits[i, 1] * _ROW_HASH[1]) ^ (bits[i, 2] * _ROW_HASH[2])
         s = (h >> np.uint64(20)) & mask
         while table[s] >= 0:
             j = table[s]
@@ -73,8 +76,7 @@ def dedupe(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     p = np.ascontiguousarray(points, dtype=np.float64)
     p = p + 0.0  # -0.0 → +0.0 so equal coordinates have equal bits
     bits = p.view(np.uint64).reshape(-1, 3)
-    h = bits[:, 0] * np.uint64(0x9E3779B97F4A7C15) ^ bits[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F)
-    h ^= bits[:, 2] * np.uint64(0x165667B19E3779F9)
+    h = bits[:, 0] * _ROW_HASH[0] ^ bits[:, 1] * _ROW_HASH[1] ^ bits[:, 2] * _ROW_HASH[2]
     _, first, inverse = np.unique(h, return_index=True, return_inverse=True)
     if not np.array_equal(p[first[inverse]], p):  # hash collision (never seen): exact but slower path
         _, first, inverse = np.unique(p, axis=0, return_index=True, return_inverse=True)

@@ -14,6 +14,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -70,22 +71,26 @@ class SettingsEntry:
 
 @dataclass
 class CoreOutput:
-    """Messages for one scan; ``deviations`` / ``corrected`` are None when the scan is in ERROR (``corrected`` also
-    when it was not asked for, :meth:`XmetroCore.judge`'s ``corrected``: ``make_corrected()`` then builds it);
-    ``reference`` is
+    """Messages for one scan; ``deviations`` / ``corrected`` are None when the scan is in ERROR; ``reference`` is
     the ReferenceCheck of a reference scan (None for other scans); ``cad`` the ``~/cad_deviations`` cloud when a
     CAD part is configured (None otherwise, or when the comparison failed: ``cad_error`` says why, the scan's other
-    outputs stand); ``cad_log`` one line on the comparison."""
+    outputs stand); ``cad_log`` one line on the comparison. ``corrected`` is built on first access (``make_corrected``;
+    None: no cloud): the node reads it only while ``~/corrected`` has a subscriber, as drivers publish only the
+    clouds someone takes (building and serializing it cost ~8 ms a 167k-point scan here)."""
 
     quality: ScanQuality
     deviations: PointCloud2 | None
-    corrected: PointCloud2 | None
     log: str
     reference: ReferenceCheck | None = None
     cad: PointCloud2 | None = None
     cad_error: str = ""
     cad_log: str = ""
     make_corrected: Callable[[], PointCloud2] | None = None
+
+    @cached_property
+    def corrected(self) -> PointCloud2 | None:
+        """The ``~/corrected`` cloud (built once, when first asked for), None when the scan is in ERROR."""
+        return None if self.make_corrected is None else self.make_corrected()
 
 
 class XmetroCore:
@@ -236,7 +241,7 @@ class XmetroCore:
         q.message = message
         q.points_received = n
         q.processing_latency = time.monotonic() - t0
-        return CoreOutput(q, None, None, f"scan rejected ({code}): {message}")
+        return CoreOutput(q, None, f"scan rejected ({code}): {message}")
 
     def unjudged(self, msg: PointCloud2, code: str, message: str, t0: float | None = None,
                  posed: PosedScan | None = None) -> CoreOutput:
@@ -259,7 +264,7 @@ class XmetroCore:
         return self._error(q, code, message, n, t0)
 
     def judge(self, msg: PointCloud2, t0: float | None = None, deadline: float | None = None,
-              reference: bool = False, posed: PosedScan | None = None, corrected: bool = True) -> CoreOutput:
+              reference: bool = False, posed: PosedScan | None = None) -> CoreOutput:
         """Judge one cloud; ``t0`` = monotonic receipt time (for processing_latency). Never raises for bad input.
 
         ``reference``: the cloud is a scan of the reference sphere (``reference_scan`` topic): once judged it is
@@ -273,20 +278,15 @@ class XmetroCore:
 
         ``posed``: ``msg`` is a scan assembled from profiles (:mod:`xmetro_ros.ros.posed_scans`): judged with each
         row's own head pose and the settings chosen for it; no frame check (its poses come from tf).
-
-        ``corrected``: build the ``~/corrected`` cloud now (False: ``CoreOutput.corrected`` is None and
-        ``CoreOutput.make_corrected()`` builds it; the node builds it only when ``~/corrected`` has a subscriber at
-        publishing time, as drivers publish only the clouds someone takes: building and serializing it cost ~8 ms a
-        167k-point scan here).
         """
         t0 = time.monotonic() if t0 is None else t0
-        out, res = self._judge(msg, t0, deadline, posed, corrected)
+        out, res = self._judge(msg, t0, deadline, posed)
         if reference:
             out.reference = self._check_reference(msg, res, out)
         return out
 
     def _judge(self, msg: PointCloud2, t0: float, deadline: float | None,
-               posed: PosedScan | None = None, corrected: bool = True) -> tuple[CoreOutput, Any]:
+               posed: PosedScan | None = None) -> tuple[CoreOutput, Any]:
         """``judge`` without the reference check: the messages and the ScanResult (None when in ERROR)."""
         stamp_ns = stamp_to_ns(msg.header.stamp)
         n = int(msg.width) * int(msg.height)
@@ -333,7 +333,7 @@ class XmetroCore:
             return self._error(q, "INTERNAL", f"{type(e).__name__}: {e}", n, t0), None
 
         try:
-            out = self._outputs(msg, q, res, entry, stamp_ns, t0, corrected)
+            out = self._outputs(msg, q, res, entry, stamp_ns, t0)
             if posed is not None:
                 out.quality.message = f"{out.quality.message}; {posed.note}"
                 out.log = f"{out.log}; {posed.note}"
@@ -359,7 +359,7 @@ class XmetroCore:
         return reference_message(msg.header, res.model_id if res is not None else self.model_id, r)
 
     def _outputs(self, msg: PointCloud2, q: ScanQuality, res: Any, entry: SettingsEntry, stamp_ns: int,
-                 t0: float, want_corrected: bool = True) -> CoreOutput:
+                 t0: float) -> CoreOutput:
         fill_quality(q, res.quality)
         q.model_id = res.model_id  # the model set that judged this scan (the pose model's domain may hold it)
         keep = res.kept
@@ -372,10 +372,6 @@ class XmetroCore:
         # −t, NaN kept); ~/corrected = measured + t = measured − d.
         dev_cloud = deviations_cloud(msg.header, points_m, res.deviations, res.flags, out_h, out_w,
                                      unc_mm=res.uncertainty, from_target=True)
-        def make_corrected() -> PointCloud2:
-            return corrected_cloud(msg, res.deviations, keep, out_h, out_w)
-
-        corrected = make_corrected() if want_corrected else None
         cad_msg, cad_pose, cad_error, cad_log = self._cad_map(msg, points_m, res)
         self.history.add(JudgedScan(
             stamp_ns=stamp_ns, frame_id=msg.header.frame_id, n_points=out_h * out_w,
@@ -391,8 +387,8 @@ class XmetroCore:
         line = (f"scan at {stamp_ns / 1e9:.3f} s ({msg.header.frame_id or 'no frame'}): {qd['verdict_name']} "
                 f"({qd['message']}); usable {qd['usable_fraction']:.2f} of {qd['points_valid']} valid points, p95 "
                 f"|d| x/y/z {p95} µm, p95 U {u95} µm")
-        return CoreOutput(q, dev_cloud, corrected, line, cad=cad_msg, cad_error=cad_error, cad_log=cad_log,
-                          make_corrected=make_corrected)
+        return CoreOutput(q, dev_cloud, line, cad=cad_msg, cad_error=cad_error, cad_log=cad_log,
+                          make_corrected=lambda: corrected_cloud(msg, res.deviations, keep, out_h, out_w))
 
     def _cad_map(self, msg: PointCloud2, points_m: np.ndarray, res: Any
                  ) -> tuple[PointCloud2 | None, np.ndarray | None, str, str]:

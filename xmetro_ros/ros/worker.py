@@ -126,7 +126,7 @@ class ScanWorker(NodeMixin):
         if core is None:
             return
         out = core.judge(msg, t0, deadline=time.monotonic() + float(core.values["max_processing_time"]),
-                         reference=reference, posed=posed, corrected=False)
+                         reference=reference, posed=posed)
         with self._cv:
             if self._token is not token:
                 return  # abandoned by the watchdog: its scan was already answered TIMEOUT
@@ -137,8 +137,8 @@ class ScanWorker(NodeMixin):
             self.pub_dev.publish(out.deviations)
             # ~/corrected is built only when someone takes it (a volatile topic: a reader not yet matched would not
             # get it either)
-            if out.make_corrected is not None and self.pub_corr.get_subscription_count() > 0:
-                self.pub_corr.publish(out.make_corrected())
+            if self.pub_corr.get_subscription_count() > 0 and out.corrected is not None:
+                self.pub_corr.publish(out.corrected)
         q.processing_latency = time.monotonic() - t0
         if q.verdict == ScanQuality.VERDICT_ERROR:
             self.get_logger().error(out.log)
