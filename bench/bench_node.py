@@ -158,6 +158,7 @@ def in_process(reps: int, model_dir: str) -> dict:
 
 def stages(core, scan, reps: int) -> dict:
     """Median time of each stage of the judge on one scan (same process, measured separately)."""
+    from xmetro_ros.compute.threads import use_threads
     from xmetro_ros.judge.features import FeatureContext, compute_features
     from xmetro_ros.preprocess import grid_kernels as gk
     from xmetro_ros.preprocess import prepare_scan
@@ -166,6 +167,7 @@ def stages(core, scan, reps: int) -> dict:
 
     msg = scan_to_cloud(scan)
     h = core.handler
+    use_threads(h.params.threads)  # the stages timed alone at the judge's budget (numba's count is per thread)
     cfg = h.preprocess_config()
     names = ("decode", "prepare", "features", "predict", "process_total", "judge_total",
              "prepare.planes", "prepare.outliers", "prepare.normals_gather", "prepare.geometry", "prepare.orient")

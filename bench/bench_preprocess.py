@@ -24,6 +24,8 @@ import numpy as np
 from xmetro_ros import preprocess as pp
 from xmetro_ros.judge.features import STUDY_FEATURES, FeatureContext, compute_features
 from xmetro_ros.preprocess import knn as pp_knn
+from xmetro_ros.preprocess.curvature import principal_curvatures
+from xmetro_ros.preprocess.noise import noise_scale
 from xmetro_ros.preprocess.points import has_duplicates
 from xmetro_ros.scan.artifacts import Sphere
 from xmetro_ros.scan.geometry import HeadPose
@@ -72,6 +74,9 @@ def main() -> None:
     res["grid_normals_only"] = best(lambda: pp.grid_normals(scan.points))
     res["grid_outliers_only"] = best(lambda: pp.grid_outliers(scan.points))
     res["features_14"] = best(lambda: compute_features(STUDY_FEATURES, FeatureContext.from_prepared(prep)))
+    # what the judge adds for the card's U on an organized scan: the surface classes, the measured noise
+    res["principal_curvatures"] = best(lambda: principal_curvatures(prep))
+    res["noise_scale"] = best(lambda: noise_scale(prep))
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(flat))
     param = o3d.geometry.KDTreeSearchParamHybrid(radius=1.5, max_nn=30)
     res["open3d_normals_only"] = best(lambda: pc.estimate_normals(param), n=5)

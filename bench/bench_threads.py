@@ -67,11 +67,15 @@ def _core(threads: int, model_dir: str):
 
 def _stages(core, msg, scan) -> dict[str, float]:
     """One judge of ``msg`` cut into its stages (seconds)."""
+    from xmetro_ros.compute.threads import use_threads
     from xmetro_ros.judge.features import FeatureContext, compute_features
     from xmetro_ros.preprocess import prepare_scan
     from xmetro_ros.ros.convert import cloud_to_scan
 
     h = core.handler
+    # numba's count is the calling thread's and the last judge (another budget's core) left its own: the stages
+    # timed alone must run at this core's, as its process does
+    use_threads(h.params.threads)
     t0 = time.perf_counter()
     sc = cloud_to_scan(msg, scan.settings, scan.pose, scan.scanner_id)
     t1 = time.perf_counter()

@@ -125,7 +125,9 @@ def test_calibration_with_surfaces_gives_u_per_class_and_the_judge_uses_it(tmp_p
                                                     ScanSettings(10.0, 4.0, 0.5), scanner=SC, seed=3))
     cls = ms.surface_classes(principal_curvatures(res.prepared))
     assert (cls == 2).mean() > 0.2  # the pocket
-    up = ms.predict_with_uncertainty(res.features, surface_class=cls)
+    # the per-class multipliers are calibrated on max(σ̂, measured noise·|N|), and the judge gives U the scan's noise
+    assert ms.noise_in_u and by["noise"]["window_cells"] == 7 and res.noise is not None
+    up = ms.predict_with_uncertainty(res.features, surface_class=cls, noise=res.noise)
     np.testing.assert_array_equal(res.row_uncertainty, up.U)
     plain = ms.predict_with_uncertainty(res.features)
     assert not np.array_equal(plain.U[cls == 0], up.U[cls == 0])

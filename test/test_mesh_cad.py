@@ -82,3 +82,15 @@ def test_predict_cad_offline(tmp_path, handler: ScanHandler) -> None:
     for k in ("before", "after", "u_normal"):
         assert row[k]["mean_abs"] == pytest.approx(direct[k]["mean_abs"], rel=1e-3, abs=0.01)
     assert np.isfinite(row["u_normal"]["mean"]) and row["u_normal"]["mean"] > 0
+
+
+@pytest.mark.parametrize("part", ["blade", "bowl"])
+def test_intervals_hold_per_axis_at_short_exposure(handler: ScanHandler, part: str) -> None:
+    """Issue 28's failures, with other draws than the study's: at 6/3/0.1 the bowl's z (its flat top: σ̂ 13 µm for a
+    true 16 µm) and the twisted blade's y (σ̂ too flat in |N_y|) were covered 84-89 %. With the scan's measured
+    noise under σ̂ (preprocess/noise.py, judge/measured_noise.py) every axis covers ≥ 93 % of the in-domain points
+    against the simulator's truth (the study's draws: 94.0-98.4 %)."""
+    r = evaluate_part(part, handler, ScanSettings(6.0, 3.0, 0.1), seed=11, register=False)
+    cov = r["coverage"]["in_domain"]
+    assert cov["n"] > 10_000
+    assert min(cov["coverage_xyz"]) >= 0.93, cov["coverage_xyz"]

@@ -115,7 +115,7 @@ def test_out_of_domain_says_which_check_and_only_the_multivariate_one_widens_u(h
     _err, sig = model.predict_with_sigma(r.features)
     model.domain_distance = lambda X: np.full(len(X), np.nan)  # NaN distance: no widening (this instance only)
     try:
-        U0, _ = model._expand(sig, r.features, r.surface_class)
+        U0, _ = model._expand(sig, r.features, r.surface_class, r.noise)
     finally:
         del model.domain_distance
     far = dist > 1.0

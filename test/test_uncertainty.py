@@ -171,19 +171,18 @@ def test_card_without_multivariate_domain_falls_back_to_min_max(trained, tmp_pat
 def test_shipped_default_intervals_on_new_seeds_and_artifacts():
     """The packaged default (full profile, calibrated on campaign seed 1000 and the calibration surfaces) on a Ø40
     sphere and an r 15 mm cylinder simulated with seed 3, each point's U of its surface class as the node publishes
-    it (docs/uncertainty.md table). Calibrated per condition (incidence × exposure) with the envelope over
-    neighbouring incidence bins, every bin covers ≥ 93 % (one multiplier per axis: 91.5 % in the worst); overall
-    the coverage is conservative, X most (97.1 %: the convex class also holds the weakly convex points of the saddle
-    and groove surfaces, where the sphere-trained model's X is worse): the price of holding in every condition and
-    on parts rather than on spheres alone (calibrated on the spheres alone: 95.8-96.1 %)."""
+    it, on the scan's measured noise (docs/uncertainty.md table). Calibrated per condition (incidence × exposure)
+    with the envelope over neighbouring incidence bins, every bin covers ≥ 93 % (one multiplier per axis: 91.5 % in
+    the worst); overall 95.7-95.9 % with U 1.04-1.06× the oracle half-width (on σ̂ alone, 0.7.3-0.7.4: 96.3-97.1 %,
+    1.10-1.16×: holding on parts then cost width on spheres)."""
     from xmetro_ros.learn.uncertainty_eval import evaluate_shipped
 
     r = evaluate_shipped()
     u = r["calibration"]
-    assert "crepes" in u["method"] and len(u["calibration_clouds"]) == 216 and u["conditional"]["by_surface"]
+    assert "crepes" in u["method"] and len(u["calibration_clouds"]) == 216 and u["conditional"]["by_surface"]["noise"]
     assert r["per_class"] and (r["surface_class"] == 1).mean() > 0.8  # spheres and a cylinder: mostly convex
     for ax, m in r["metrics"].items():
         assert 0.94 <= m["coverage"] <= 0.975, (ax, m["coverage"])
-        assert m["sharpness_ratio"] <= 1.3 and m["spearman_U_true_std"] >= 0.7, (ax, m)
+        assert m["sharpness_ratio"] <= 1.1 and m["spearman_U_true_std"] >= 0.7, (ax, m)
         for name, rows in m["bins"].items():
             assert all(b["coverage"] >= 0.93 for b in rows if b["n"] >= 200), (ax, name, rows)

@@ -118,7 +118,8 @@ def _calibrate_default(model_dir: Path, profile: str, seed: int, surfaces: bool 
     simulated again with seed + CALIBRATION_SEED_OFFSET (same artifacts and settings, new clouds) and, with
     ``surfaces``, the calibration surfaces (plates, grooves, a saddle, a filleted ridge at many tilts:
     scan/calibration_surfaces.py) under the study's settings; CALIBRATION_POINTS_PER_CLOUD points per cloud, per
-    axis, per condition (learn/uncertainty.py) and per surface class (judge/surface_class.py). The shape domain
+    axis, per condition (learn/uncertainty.py) and per surface class (judge/surface_class.py), the latter on
+    max(σ̂, measured noise·|N|) (judge/measured_noise.py). The shape domain
     (card ``domain_shape``: mean curvature range and the (κmin, κmax) cells) comes from the same clouds."""
     from ..judge.features import STUDY_FEATURES
     from ..judge.inference import update_card
@@ -150,7 +151,7 @@ def _calibrate_default(model_dir: Path, profile: str, seed: int, surfaces: bool 
     labels = [f"campaign seed {cal_seed} item {i}: {c['label']} {c['artifact']['kind']}"
               for i, c in enumerate(t.clouds[: len(items)])] + labels
     block = calibrate(model_dir, t.X, t.y, t.cloud_id, cloud_labels=labels,
-                      surface_class=cs.surface_class if surfaces else None)
+                      surface_class=cs.surface_class if surfaces else None, noise=cs.noise if surfaces else None)
     shape = fit_shape_domain(cs.mean_curvature)
     extra: dict[str, Any] = {}
     if surfaces:

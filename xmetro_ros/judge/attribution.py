@@ -63,12 +63,15 @@ def explain(
     seed: int = 0,
     output: str = "error",
     surface_class: np.ndarray | None = None,
+    noise: np.ndarray | None = None,
 ) -> ShapResult:
     """SHAP values of ``model_set`` (a :class:`~xmetro_ros.judge.inference.ModelSet`) for the rows X (P, F).
 
     output: "error" (the predicted error) or "uncertainty" (its expanded uncertainty U, which features make a point
     uncertain; needs a calibrated model set). Additivity holds for either. ``surface_class`` (P,): with "uncertainty",
-    each row's surface class, a player of its own (:data:`SURFACE_CLASS`, module doc; None: the all-class U).
+    each row's surface class, a player of its own (:data:`SURFACE_CLASS`, module doc; None: the all-class U);
+    ``noise`` (P,) mm: each row's measured noise, switched on and off with the class (the card's U takes both
+    together, :mod:`.measured_noise`).
 
     background: (B, F) reference rows (None → the card's stored background, else the column medians of X);
     at most ``max_background`` rows are used (evenly spaced). ``n_permutations`` is rounded up to an even number
@@ -85,6 +88,8 @@ def explain(
     # states[j, b, s] : coalition after s switches of permutation j from background b to x.
     states = np.empty((len(perms), B, players + 1, P, F), np.float32)
     state_cls = np.full((len(perms), players + 1, P), -1, np.int8)  # −1: the all-class multiplier
+    nz = None if cls is None or noise is None else np.asarray(noise, np.float64).reshape(P)
+    state_nz = np.full((len(perms), players + 1, P), np.nan)  # NaN: no measured noise (σ̂ alone)
     for j, perm in enumerate(perms):
         cur = np.broadcast_to(bg[:, None, :], (B, P, F)).copy()
         states[j, :, 0] = cur
@@ -93,9 +98,13 @@ def explain(
                 cur[:, :, k] = X[None, :, k]
             else:
                 state_cls[j, s:] = cls
+                if nz is not None:
+                    state_nz[j, s:] = nz
             states[j, :, s] = cur
     kw = {} if cls is None else {
         "surface_class": np.broadcast_to(state_cls[:, None], (len(perms), B, players + 1, P)).reshape(-1, P)}
+    if nz is not None:
+        kw["noise"] = np.broadcast_to(state_nz[:, None], (len(perms), B, players + 1, P)).reshape(-1, P)
     pred = model_set.predict_batch(states.reshape(-1, P, F), output=output, **kw)
     pred = pred.reshape(len(perms), B, players + 1, P, 3)[..., axes]
     names = list(model_set.feature_names) + ([SURFACE_CLASS] if cls is not None else [])
@@ -114,6 +123,7 @@ def explain_in_cloud(
     max_set_rows: int = 4_000_000,
     output: str = "error",
     surface_class: np.ndarray | None = None,
+    noise: np.ndarray | None = None,
 ) -> ShapResult:
     """SHAP values of the published predictions of ``rows`` of a cloud (see the module docstring).
 
@@ -122,7 +132,7 @@ def explain_in_cloud(
     ``max_set_rows`` feature rows are predicted; additivity is exact whatever the background. Raises ValueError for
     bad shapes, non-finite rows, rows out of range or unknown axes. ``output``: as :func:`explain` (with
     "uncertainty", base + Σ SHAP equals the published U: give ``surface_class`` (M,), the classes the judge gave
-    the cloud's rows, when the card is calibrated per class).
+    the cloud's rows, when the card is calibrated per class, and ``noise`` (M,), the measured noise its U took).
     """
     _check_output(output)
     X_cloud = np.asarray(X_cloud, np.float32)
@@ -136,10 +146,15 @@ def explain_in_cloud(
         cls = np.asarray(surface_class).reshape(-1)
         if len(cls) != len(X_cloud):
             raise ValueError(f"explain: {len(cls)} surface classes for a cloud of {len(X_cloud)} rows")
+    nz = None
+    if cls is not None and noise is not None:
+        nz = np.asarray(noise, np.float64).reshape(-1)
+        if len(nz) != len(X_cloud):
+            raise ValueError(f"explain: {len(nz)} noise scales for a cloud of {len(X_cloud)} rows")
     if not model_set.has_sets:
         return explain(model_set, X_cloud[rows], background, axes=axes, n_permutations=n_permutations,
                        max_background=max_background, seed=seed, output=output,
-                       surface_class=None if cls is None else cls[rows])
+                       surface_class=None if cls is None else cls[rows], noise=None if nz is None else nz[rows])
     if not np.all(np.isfinite(X_cloud)):
         raise ValueError("explain: the cloud has non-finite features (predict leaves them out of every set)")
     X = _check_rows(model_set, X_cloud[rows], axes)
@@ -165,6 +180,7 @@ def explain_in_cloud(
     pred = np.empty((J, B, steps, P, len(axes)))
     predict_sets = model_set.predict_sets if output == "error" else model_set.predict_sets_uncertainty
     own_cls = None if cls is None else cls[rows]
+    own_nz = None if nz is None else nz[rows]
     chunk = max(1, 250_000 // (J * B * steps * n))  # points per batch: ~250k feature rows per ONNX call
     for c0 in range(0, P, chunk):
         c = slice(c0, min(P, c0 + chunk))
@@ -181,7 +197,11 @@ def explain_in_cloud(
         else:  # the point's class once its player is on, else none (−1); only its own output is read
             st = np.where(on[:, :, F + 1][:, :, None], own_cls[c][None, None, :], -1)  # (J, steps, pc)
             sc = np.broadcast_to(st[:, None, :, :, None], (J, B, steps, pc, n)).reshape(-1, n)
-            y = model_set.predict_sets_uncertainty(sets.reshape(-1, n, F), sc).reshape(J, B, steps, pc, n, 3)
+            sn = None
+            if own_nz is not None:  # the measured noise with the class (NaN: σ̂ alone)
+                sv = np.where(on[:, :, F + 1][:, :, None], own_nz[c][None, None, :], np.nan)
+                sn = np.broadcast_to(sv[:, None, :, :, None], (J, B, steps, pc, n)).reshape(-1, n)
+            y = model_set.predict_sets_uncertainty(sets.reshape(-1, n, F), sc, sn).reshape(J, B, steps, pc, n, 3)
         pred[:, :, :, c] = y[:, :, :, np.arange(pc), first[c]][..., axes]
     names = [*list(model_set.feature_names), SET_CONTEXT] + ([SURFACE_CLASS] if cls is not None else [])
     return _shapley(pred, perms, names, axes)

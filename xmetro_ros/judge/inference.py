@@ -41,6 +41,7 @@ import numpy as np
 from ..compute.threads import parallel_for
 from ..scan.resources import default_model_dir
 from .conditions import interior_edges, multiplier_table, row_multipliers
+from .measured_noise import NORMAL_FEATURES, effective_sigma
 from .pointsets import set_order
 from .set_kernels import expand_u as _expand_u
 from .set_kernels import expand_u_conditional as _expand_u_cond
@@ -108,6 +109,11 @@ class _Member:
     path: Path
     sigma: bool = False  # the ONNX graph has a second output log_sigma (spread head)
     outputs: tuple[str, ...] = ()  # the error output first, then log_sigma when there is one
+
+
+def _as_sets(a: np.ndarray, order: np.ndarray, q: int) -> np.ndarray:
+    """Per-point values (P,) of every version, or (Q, P), laid out as the Q versions' sets end to end."""
+    return np.tile(a[order], q) if a.ndim == 1 else a[:, order].reshape(-1)
 
 
 def _run_chunk(m: _Member, want: tuple[str, ...], x: np.ndarray, y: np.ndarray) -> None:
@@ -352,14 +358,14 @@ class ModelSet:
             _from_sets(y[o].reshape(-1, 3), order, out[o], rows)
         return out[0], (out[1] if sigma else None)
 
-    def predict_batch(self, Xq: np.ndarray, output: str = "error", surface_class: np.ndarray | None = None
-                      ) -> np.ndarray:
+    def predict_batch(self, Xq: np.ndarray, output: str = "error", surface_class: np.ndarray | None = None,
+                      noise: np.ndarray | None = None) -> np.ndarray:
         """(Q, P, F) → (Q, P, 3): Q versions of the same P-point cloud, each predicted as ``predict`` would
         (same set partition for every version). Used by the SHAP explainer and the recommender. Rows must be
         finite. ``output="uncertainty"``: U as :meth:`predict_with_uncertainty` instead of the errors (with the
-        points' surface classes ``surface_class``: (P,) in every version, or (Q, P))."""
+        points' surface classes ``surface_class`` and measured noise ``noise``: (P,) in every version, or (Q, P))."""
         if output != "error":  # U as predict_with_uncertainty computes it, from the same run's log σ̂
-            return self.predict_batch_with_uncertainty(Xq, surface_class)[1]
+            return self.predict_batch_with_uncertainty(Xq, surface_class, noise)[1]
         Xq = np.asarray(Xq, dtype=np.float32)
         q, p, f = Xq.shape
         out = np.empty((q, p, 3))
@@ -370,10 +376,11 @@ class ModelSet:
         _from_sets(self._run_sets(sets, False)[0].reshape(q, -1, 3), order, out)
         return out
 
-    def predict_batch_with_uncertainty(self, Xq: np.ndarray, surface_class: np.ndarray | None = None
-                                       ) -> tuple[np.ndarray, np.ndarray]:
+    def predict_batch_with_uncertainty(self, Xq: np.ndarray, surface_class: np.ndarray | None = None,
+                                       noise: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(Q, P, F) → (errors (Q, P, 3), U (Q, P, 3)) mm: each version as :meth:`predict_with_uncertainty` would give
-        it (with the points' classes ``surface_class``: (P,) in every version, or (Q, P)), errors and U from ONE ONNX
+        it (with the points' classes ``surface_class`` and measured ``noise``: (P,) in every version, or (Q, P)),
+        errors and U from ONE ONNX
         run per chunk of sets (the recommender's candidates; ``predict_batch``'s U). Rows must be finite. Raises
         ModelLoadError without a calibration."""
         if not self.calibrated:
@@ -386,11 +393,8 @@ class ModelSet:
         order, pos = set_order(p, self.set_size, self.partition_seed)
         sets = _to_sets(Xq, pos, order).reshape(-1, self.set_size, f)
         y = self._run_sets(sets, True, exp_sigma=True)  # float32 exp, as predict_with_uncertainty
-        cls = None
-        if surface_class is not None:  # (P,) or (Q, P), laid out as the sets
-            sc = np.asarray(surface_class)
-            cls = np.tile(sc[order], q) if sc.ndim == 1 else sc[:, order].reshape(-1)
-        U, _ = self._expand(y[1].astype(np.float64).reshape(-1, 3), sets.reshape(-1, f), cls)
+        cls, nz = (None if a is None else _as_sets(np.asarray(a), order, q) for a in (surface_class, noise))
+        U, _ = self._expand(y[1].astype(np.float64).reshape(-1, 3), sets.reshape(-1, f), cls, nz)
         _from_sets(y[0].reshape(q, -1, 3), order, err)
         _from_sets(U.reshape(q, -1, 3), order, unc)
         return err, unc
@@ -485,6 +489,19 @@ class ModelSet:
         return bool(self._by_surface_block)
 
     @property
+    def noise_in_u(self) -> bool:
+        """True when the card's per-class multipliers were calibrated on max(σ̂, measured noise·|N|)
+        (``uncertainty.conditional.by_surface.noise``, :mod:`.measured_noise`): the judge then gives
+        :meth:`predict_with_uncertainty` each point's measured noise (:mod:`xmetro_ros.preprocess.noise`)."""
+        return bool((self._by_surface_block or {}).get("noise"))
+
+    @cached_property
+    def _normal_columns(self) -> list[int]:
+        """Columns of the unit normal (N_x, N_y, N_z) in the feature rows."""
+        names = list(self.feature_names)
+        return [names.index(c) for c in NORMAL_FEATURES]
+
+    @property
     def _by_surface_block(self) -> dict | None:
         """The card's ``uncertainty.conditional.by_surface`` block (None: not calibrated per class)."""
         return ((self.card.get("uncertainty") or {}).get("conditional") or {}).get("by_surface")
@@ -509,13 +526,15 @@ class ModelSet:
             return np.asarray(block["multiplier"], np.float64)
         return row_multipliers(block, X, self.feature_names, surface_class)
 
-    def _expand(self, sig: np.ndarray, X: np.ndarray, surface_class: np.ndarray | None = None
-                ) -> tuple[np.ndarray, np.ndarray]:
-        """(U (M, 3), domain distance (M,)) from σ̂ (M, 3) and the feature rows X (M, F) (and their surface classes):
-        the one formula of U."""
+    def _expand(self, sig: np.ndarray, X: np.ndarray, surface_class: np.ndarray | None = None,
+                noise: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(U (M, 3), domain distance (M,)) from σ̂ (M, 3) and the feature rows X (M, F) (and their surface classes
+        and measured noise, mm along the normal): the one formula of U."""
         if not self.calibrated:
             raise ModelLoadError(f"model set {self.id!r} has no uncertainty calibration (card 'uncertainty')")
         dist = self.domain_distance(X)
+        if self.noise_in_u and surface_class is not None and noise is not None:
+            sig, surface_class = effective_sigma(sig, np.asarray(X)[:, self._normal_columns], surface_class, noise)
         floor = float(self.card["uncertainty"].get("sigma_floor_mm", 0.0))
         if self._conditions is not None:  # the row's condition found and its multiplier applied in one pass
             table, cos_e, exp_e, i_inc, i_exp = self._conditions
@@ -527,9 +546,11 @@ class ModelSet:
         # (σ̂ + floor) × mult × max(1, distance), in that order (NaN distance: no widening), one compiled pass
         return _expand_u(np.asarray(sig, np.float64), floor, mult, dist), dist
 
-    def predict_sets_uncertainty(self, sets: np.ndarray, surface_class: np.ndarray | None = None) -> np.ndarray:
+    def predict_sets_uncertainty(self, sets: np.ndarray, surface_class: np.ndarray | None = None,
+                                 noise: np.ndarray | None = None) -> np.ndarray:
         """(K, n, F) → U (K, n, 3) mm of each set's rows predicted as one PointNet set (as :meth:`predict_sets`),
-        with the rows' surface classes ``surface_class`` (K, n) when given; a set of the partition of
+        with the rows' surface classes ``surface_class`` and measured ``noise`` (K, n) when given; a set of the
+        partition of
         :meth:`predict_with_uncertainty` with its points' classes gets exactly the published U of its points (the
         explainer of U relies on it). Raises ModelLoadError without a calibration."""
         sets = np.asarray(sets, dtype=np.float32)
@@ -538,22 +559,25 @@ class ModelSet:
             raise ModelLoadError(f"model set {self.id!r} has no uncertainty calibration (card 'uncertainty')")
         _, sig = self.predict_sets_sigma(sets)
         cls = None if surface_class is None else np.asarray(surface_class).reshape(k * n)
-        U, _ = self._expand(sig.reshape(k * n, 3), sets.reshape(k * n, f), cls)
+        nz = None if noise is None else np.asarray(noise, np.float64).reshape(k * n)
+        U, _ = self._expand(sig.reshape(k * n, 3), sets.reshape(k * n, f), cls, nz)
         return U.reshape(k, n, 3)
 
-    def predict_with_uncertainty(self, X: np.ndarray, surface_class: np.ndarray | None = None
-                                 ) -> UncertainPrediction:
+    def predict_with_uncertainty(self, X: np.ndarray, surface_class: np.ndarray | None = None,
+                                 noise: np.ndarray | None = None) -> UncertainPrediction:
         """Errors and their expanded uncertainty U (mm) for the feature rows X (M, F) of ONE cloud.
 
         U = the card's conformal multiplier (per axis, or per condition: :meth:`multipliers`; per surface class too
         when the card has them and ``surface_class`` (M,) int8 gives each row's, −1 for none) × (σ̂ + its
-        sigma_floor_mm), times max(1, domain distance) outside the multivariate domain. Raises ModelLoadError when
-        the model set has no calibration."""
+        sigma_floor_mm), times max(1, domain distance) outside the multivariate domain. With the rows' measured
+        ``noise`` (M,) mm along the normal (:mod:`xmetro_ros.preprocess.noise`, NaN: none) and a card calibrated with
+        it (:attr:`noise_in_u`), σ̂ is max(σ̂, noise·|N|) per axis (:mod:`.measured_noise`). Raises ModelLoadError
+        when the model set has no calibration."""
         if not self.calibrated:
             raise ModelLoadError(f"model set {self.id!r} has no uncertainty calibration (card 'uncertainty')")
         X = self._check_X(X)
         err, sig = self.predict_with_sigma(X)
-        U, dist = self._expand(sig, X, surface_class)
+        U, dist = self._expand(sig, X, surface_class, noise)
         return UncertainPrediction(err, U, sig, dist, self.out_of_domain_mv(X, dist))
 
     @cached_property

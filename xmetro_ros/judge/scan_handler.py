@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from ..compute.threads import use_threads
+from ..preprocess.noise import noise_scale
 from ..scan.geometry import HeadPose, RowPoses
 from ..scan.scan import Scan
 from ..scan.scanner import ScannerModel, SettingsError
@@ -207,6 +208,8 @@ class ScanResult:
             ``domain_shape``.
         surface_class: (M,) int8 surface class of each row of ``prepared`` whose multipliers its U took
             (:meth:`ModelSet.surface_classes`; −1 none), None when the card is not calibrated per class.
+        noise: (M,) float64 measured noise (mm, along the normal; :mod:`xmetro_ros.preprocess.noise`) of each row of
+            ``prepared`` that its U took (NaN: none), None when the card's U does not use it.
         model_id: id of the model set that judged the scan (the primary, or the pose model: :meth:`ScanHandler.route`).
     """
 
@@ -224,6 +227,7 @@ class ScanResult:
     decisions: np.ndarray | None = None
     shape_out_of_domain: np.ndarray | None = None
     surface_class: np.ndarray | None = None
+    noise: np.ndarray | None = None
     model_id: str = ""
 
 
@@ -234,11 +238,12 @@ def warm_up() -> float:
     idle (0.7.3, `xmetro_node` with NUMBA_CACHE_DIR empty). Returns the seconds taken."""
     import time
 
-    from ..preprocess import curvature, grid_kernels
+    from ..preprocess import curvature, grid_kernels, noise
     from . import scan_stats
 
     t = time.perf_counter()
     grid_kernels.warm_up()
+    noise.warm_up()
     for fn in (curvature.grid_mean_curvature, curvature.grid_principal_curvatures):
         fn(np.zeros((1, 3)), np.ones((1, 3), np.float32), np.zeros(1, np.int64), (2, 2), 1.0, 1.0)
     from ..preprocess import knn_grid
@@ -448,8 +453,10 @@ class ScanHandler:
         kappa = self._principal_curvatures(prepared, model)
         surf = (model.surface_classes(kappa) if kappa is not None and getattr(model, "by_surface", False)
                 else None)
+        # the scan's own noise along the normal, where the card's U takes it (a floor under σ̂)
+        noise = noise_scale(prepared) if surf is not None and getattr(model, "noise_in_u", False) else None
         if getattr(model, "calibrated", False):
-            up = model.predict_with_uncertainty(X, surface_class=surf)
+            up = model.predict_with_uncertainty(X, surface_class=surf, noise=noise)
             pred = np.asarray(up.errors, dtype=np.float64)
             U = np.asarray(up.U, dtype=np.float64)
             if model.card.get("domain_mv"):  # (U is widened from distance 1 on, whatever the margin)
@@ -482,7 +489,7 @@ class ScanHandler:
                                  rescan_reason=one_profile)
         return ScanResult(deviations=dev, flags=flags, quality=quality, prepared=prepared, features=X,
                           predictions=pred, context=ctx, scan=scan, kept=kept, uncertainty=unc, row_uncertainty=U,
-                          decisions=decisions, shape_out_of_domain=shape_ood, surface_class=surf,
+                          decisions=decisions, shape_out_of_domain=shape_ood, surface_class=surf, noise=noise,
                           model_id=model_id)
 
     def crop_rows(self, res: ScanResult, start: int, stop: int, settings_defaulted: bool = False) -> ScanResult:
@@ -535,7 +542,8 @@ class ScanHandler:
                         row_uncertainty=None if res.row_uncertainty is None else res.row_uncertainty[m],
                         decisions=decisions,
                         shape_out_of_domain=None if res.shape_out_of_domain is None else res.shape_out_of_domain[m],
-                        surface_class=None if res.surface_class is None else res.surface_class[m])
+                        surface_class=None if res.surface_class is None else res.surface_class[m],
+                        noise=None if res.noise is None else res.noise[m])
 
     @staticmethod
     def _principal_curvatures(prepared: Any, model: Any) -> np.ndarray | None:

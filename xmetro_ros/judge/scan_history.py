@@ -43,6 +43,8 @@ class JudgedScan:
             explainer recomputes U from the features.
         surface_class: (M,) int8 surface class whose multipliers each point's U took (None: the card has none);
             the explainer of U keeps each point's class.
+        noise: (M,) float64 measured noise (mm, along the normal) each point's U took (None: the card's U does not
+            use it; NaN: none for that point); the explainer of U keeps it with the class.
     """
 
     stamp_ns: int
@@ -60,6 +62,7 @@ class JudgedScan:
     uncertainty: np.ndarray | None = None
     cad_pose: np.ndarray | None = None  # (4, 4) mm, part → scan frame, of the CAD map of this scan (None: no CAD)
     surface_class: np.ndarray | None = None
+    noise: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         # Kept for every judged scan in the history: only what the services need, compactly.
@@ -167,7 +170,8 @@ def explain_rows(model_set: Any, judged: JudgedScan, rows: np.ndarray, axes: tup
     The players are the model's features, plus ``set_context`` (the other points of the point's PointNet set; its
     value is how many distinct other points that set holds) when the model has a set member
     (``attribution.explain_in_cloud``), plus ``surface_class`` (its value: the point's class index) when U is
-    explained for a card calibrated per class.
+    explained for a card calibrated per class (the player also carries the point's measured noise where the card's
+    U takes it: both switch on together).
 
     ``output="uncertainty"`` explains the published expanded uncertainty U instead of the error (which features
     make a point uncertain): predictions = base + Σ SHAP = U. ServiceError when the model set has no calibration.
@@ -181,9 +185,10 @@ def explain_rows(model_set: Any, judged: JudgedScan, rows: np.ndarray, axes: tup
     if output == "uncertainty" and not getattr(model_set, "calibrated", False):
         raise ServiceError(f"model set {getattr(model_set, 'id', '?')!r} has no uncertainty calibration: "
                            "no U to explain")
-    surf = judged.surface_class
+    surf, noise = judged.surface_class, judged.noise
     res = explain_in_cloud(model_set, feats[finite], cloud_row[rows], None, axes=axes, output=output,
-                           surface_class=None if surf is None else np.asarray(surf)[finite])
+                           surface_class=None if surf is None else np.asarray(surf)[finite],
+                           noise=None if noise is None else np.asarray(noise)[finite])
     X = feats[rows].astype(np.float64)
     names = list(model_set.feature_names)
     units = list(model_set.feature_units)

@@ -32,6 +32,9 @@ import numpy as np
 from ..judge.conditions import FEATURES as CONDITION_FEATURES
 from ..judge.conditions import INCIDENCE_EDGES_DEG, MIN_POINTS, condition_index, exposure_edges
 from ..judge.inference import AXES, ModelSet, update_card
+from ..judge.measured_noise import NORMAL_FEATURES, effective_sigma
+from ..preprocess.noise import MIN_SAMPLES as NOISE_MIN_SAMPLES
+from ..preprocess.noise import WINDOW as NOISE_WINDOW
 
 __all__ = ["DOMAIN_QUANTILE", "SIGMA_FLOOR_MM", "calibrate", "conditional_multipliers", "conformal_multiplier",
            "cross_conformal_by_cloud", "fit_domain", "interval_metrics", "predict_clouds"]
@@ -65,9 +68,11 @@ def fit_domain(X_train: np.ndarray, quantile: float = DOMAIN_QUANTILE) -> dict[s
 
 
 def predict_clouds(ms: ModelSet, X: np.ndarray, cloud_id: np.ndarray, with_u: bool = True,
-                   surface_class: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                   surface_class: np.ndarray | None = None, noise: np.ndarray | None = None
+                   ) -> dict[str, np.ndarray]:
     """Published predictions for rows of several clouds, each cloud on its own (its rows form the sets, in row
-    order); U with ``surface_class`` (the rows' classes) per class when the card is calibrated so. Returns errors,
+    order); U with ``surface_class`` (the rows' classes) per class when the card is calibrated so, and with
+    ``noise`` (the rows' measured noise) where the card's U takes it. Returns errors,
     sigma (and U, out_of_domain, domain_distance with ``with_u``), rows aligned with X."""
     X = np.asarray(X, np.float32)
     cid = np.asarray(cloud_id)
@@ -78,8 +83,9 @@ def predict_clouds(ms: ModelSet, X: np.ndarray, cloud_id: np.ndarray, with_u: bo
     for c in np.unique(cid):
         rows = np.flatnonzero(cid == c)
         cls = None if surface_class is None else np.asarray(surface_class)[rows]
+        nz = None if noise is None else np.asarray(noise)[rows]
         if with_u:
-            r = ms.predict_with_uncertainty(X[rows], surface_class=cls)
+            r = ms.predict_with_uncertainty(X[rows], surface_class=cls, noise=nz)
             out["errors"][rows], out["sigma"][rows], out["U"][rows] = r.errors, r.sigma, r.U
             out["out_of_domain"][rows], out["domain_distance"][rows] = r.out_of_domain, r.domain_distance
         else:
@@ -156,7 +162,8 @@ def _cell_multipliers(cell: np.ndarray, n_cells: int, n_inc: int, res: np.ndarra
 def conditional_multipliers(X: np.ndarray, feature_names: list[str], res: np.ndarray, sig: np.ndarray,
                             ok: np.ndarray, confidence: float = 0.95, envelope: int = ENVELOPE_BINS,
                             incidence_edges: tuple[float, ...] = INCIDENCE_EDGES_DEG,
-                            surface_class: np.ndarray | None = None) -> dict[str, Any] | None:
+                            surface_class: np.ndarray | None = None, surface_sigma: np.ndarray | None = None,
+                            noise_block: dict[str, Any] | None = None) -> dict[str, Any] | None:
     """Mondrian split-conformal multipliers per calibration condition (judge/conditions.py: incidence 10° bins ×
     the exposure levels of the calibration rows): ``{"incidence_edges_deg", "exposure_edges_ms", "multiplier"
     (cell → [x, y, z] or None), "n" (cell → points per axis), "min_points"}``; None when the features lack Inc
@@ -169,7 +176,10 @@ def conditional_multipliers(X: np.ndarray, feature_names: list[str], res: np.nda
     campaign's shapes alone covered 91 % of new shapes' points at 0-10° (x), its neighbours' maximum 97 %.
 
     ``surface_class`` (M,) int (judge/surface_class.py, −1: none): the same multipliers per surface class as well
-    (block ``by_surface``; a class's cell with too few points is None there and takes the all-class cell's)."""
+    (block ``by_surface``; a class's cell with too few points is None there and takes the all-class cell's).
+    ``surface_sigma`` (M, 3): the σ (+ floor) the per-class multipliers are calibrated on instead of ``sig`` (max(σ̂,
+    measured noise·|N|), :func:`calibrate`), described by ``noise_block`` (block ``by_surface.noise``); the
+    all-class ones stay on ``sig`` (σ̂: unorganized scans, the recommender)."""
     if not set(CONDITION_FEATURES) <= set(feature_names):
         return None
     exp = np.asarray(X[:, list(feature_names).index("exposure_time")], np.float64)
@@ -191,7 +201,8 @@ def conditional_multipliers(X: np.ndarray, feature_names: list[str], res: np.nda
         from ..preprocess.curvature import RADIUS_MM
 
         cls = np.asarray(surface_class, np.int64)
-        per = [_cell_multipliers(np.where(cls == k, cell, -1), n_cells, n_inc, res, sig, ok, confidence, envelope)
+        sig_s = sig if surface_sigma is None else surface_sigma
+        per = [_cell_multipliers(np.where(cls == k, cell, -1), n_cells, n_inc, res, sig_s, ok, confidence, envelope)
                for k in range(len(SURFACE_CLASSES))]
         out["by_surface"] = {
             "classes": list(SURFACE_CLASSES), "flat_curvature_per_mm": FLAT_CURVATURE_PER_MM,
@@ -200,19 +211,24 @@ def conditional_multipliers(X: np.ndarray, feature_names: list[str], res: np.nda
                        "(xmetro_ros.preprocess.curvature, xmetro_ros.judge.surface_class)",
             "multiplier": [p[0] for p in per], "own_multiplier": [p[1] for p in per], "n": [p[2] for p in per],
             "fallback": "a class's condition with fewer than min_points points (None) takes the all-class multiplier"}
+        if noise_block:
+            out["by_surface"]["noise"] = noise_block
     return out
 
 
 def calibrate(model_dir: str | Path, X: np.ndarray, y: np.ndarray, cloud_id: np.ndarray,
               confidence: float = 0.95, cloud_labels: list | None = None, write: bool = True,
               sigma_floor_mm: float = SIGMA_FLOOR_MM, conditional: bool = True,
-              envelope: int = ENVELOPE_BINS, surface_class: np.ndarray | None = None) -> dict[str, Any]:
+              envelope: int = ENVELOPE_BINS, surface_class: np.ndarray | None = None,
+              noise: np.ndarray | None = None) -> dict[str, Any]:
     """Split-conformal calibration of the model set in ``model_dir`` on calibration clouds (rows X (M, F),
     measured errors y (M, 3) mm, cloud ids): writes the card's ``uncertainty`` block (unless ``write`` False) and
     returns it. The clouds must be held out from training (the caller's split; their ids / labels are recorded).
     ``conditional``: also one multiplier per calibration condition (incidence × exposure, the block's
     ``conditional`` part, :func:`conditional_multipliers` with ``envelope``), which U then uses; with
-    ``surface_class`` (M,) (the rows' classes, judge/surface_class.py) per condition and surface class as well.
+    ``surface_class`` (M,) (the rows' classes, judge/surface_class.py) per condition and surface class as well;
+    with ``noise`` (M,) (the rows' measured noise, mm along the normal, NaN: none; preprocess/noise.py) those per
+    class on max(σ̂, noise·|N|) (:mod:`xmetro_ros.judge.measured_noise`), the σ the judge then multiplies.
     """
     if not 0 < confidence < 1:
         raise ValueError(f"confidence must be in (0, 1), got {confidence}")
@@ -251,14 +267,29 @@ def calibrate(model_dir: str | Path, X: np.ndarray, y: np.ndarray, cloud_id: np.
         "achieved_coverage_calibration": dict(zip(AXES, achieved, strict=True)),
     }
     if conditional:
-        cond = conditional_multipliers(np.asarray(X), list(ms.feature_names), y - pred["errors"],
+        names = list(ms.feature_names)
+        cls, surf_sig, nblock = surface_class, None, None
+        if surface_class is not None and noise is not None and set(NORMAL_FEATURES) <= set(names):
+            s_eff, cls = effective_sigma(pred["sigma"], np.asarray(X)[:, [names.index(c) for c in NORMAL_FEATURES]],
+                                         surface_class, noise)
+            surf_sig = s_eff + sigma_floor_mm
+            nblock = {"sigma": "max(sigma_hat, noise * |N_axis|) + sigma_floor_mm for points with a measured noise "
+                               "and a class; sigma_hat + sigma_floor_mm and the all-class multiplier for the others",
+                      "measure": "mean |second difference along the laser line . normal| / sqrt(6) over "
+                                 "window_cells^2 grid cells x sqrt(pi/2) (xmetro_ros.preprocess.noise)",
+                      "window_cells": NOISE_WINDOW, "min_samples": NOISE_MIN_SAMPLES,
+                      "rows_with_noise": int(np.isfinite(np.asarray(noise, np.float64)).sum())}
+        cond = conditional_multipliers(np.asarray(X), names, y - pred["errors"],
                                        pred["sigma"] + sigma_floor_mm, oks, confidence, envelope=envelope,
-                                       surface_class=surface_class)
+                                       surface_class=cls, surface_sigma=surf_sig, noise_block=nblock)
         if cond is not None:
             block["conditional"] = cond
             block["U"] = ("multiplier of the point's condition (conditional: incidence bin x exposure level"
                           + (" x surface class" if "by_surface" in cond else "") + "; none: "
-                          "no U) * (sigma_hat + sigma_floor_mm), times distance/threshold outside domain_mv")
+                          "no U) * (sigma_hat + sigma_floor_mm"
+                          + ("; max(sigma_hat, measured noise * |N_axis|) + sigma_floor_mm for a point with a class "
+                             "and a measured noise" if nblock else "")
+                          + "), times distance/threshold outside domain_mv")
     if write:
         update_card(model_dir, uncertainty=block)
     return block

@@ -81,7 +81,8 @@ def evaluate_shipped(model_dir: str | Path | None = None, surface_classes: bool 
     """The shipped (or ``model_dir``) model set's calibrated intervals on SHIPPED_TEST_ARTIFACTS, seed 3.
 
     With ``surface_classes`` (and a card calibrated per surface class) each row takes the multiplier of its class,
-    from the principal curvatures of its scan's grid, as the node publishes U for an organized scan; without, every
+    from the principal curvatures of its scan's grid (and its measured noise where the card takes it), as the node
+    publishes U for an organized scan; without, every
     row takes the all-class multiplier, as for a point without a class (an unorganized scan, a scan border)."""
     from .calibration_set import calibration_set
 
@@ -94,7 +95,8 @@ def evaluate_shipped(model_dir: str | Path | None = None, surface_classes: bool 
     te = cs.table
     per_class = surface_classes and bool(ms.card["uncertainty"].get("conditional", {}).get("by_surface"))
     cls = ms.surface_classes(cs.kappa)
-    pred = predict_clouds(ms, te.X, te.cloud_id, surface_class=cls if per_class else None)
+    pred = predict_clouds(ms, te.X, te.cloud_id, surface_class=cls if per_class else None,
+                          noise=cs.noise if per_class else None)
     metrics = interval_metrics(pred["errors"], pred["U"], te.y, te.oracle_std,
                                bins=bins_for(te.X, list(STUDY_FEATURES)))
     return {"test": te, "model_set": ms, "calibration": ms.card["uncertainty"], "pred": pred, "metrics": metrics,

@@ -1,0 +1,40 @@
+"""σ of U where the scan's own noise is measured: the larger of the model's σ̂ and the measured noise projected on
+each axis.
+
+A point of an organized scan has a measured noise scale s along its normal (:mod:`xmetro_ros.preprocess.noise`);
+projected on axis a it is s·|N_a| (N the unit normal, the features ``N_x``, ``N_y``, ``N_z``). Cards calibrated
+with it (``uncertainty.conditional.by_surface.noise``) take σ_a = max(σ̂_a, s·|N_a|) for such points, with their
+surface class's multipliers calibrated on the same σ; a point without a measured scale (an unorganized scan, a
+hole's or the border's points) takes σ̂ and the all-class multipliers, calibrated on σ̂ alone. Why the larger and
+not a sum: σ̂ already carries the noise where the model judged it right, and the model's error besides; the
+measured scale is a floor where σ̂ fell short (on a part the model never saw, see the noise module). The same
+function serves calibration and inference, so the multipliers are calibrated on the σ they multiply.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["NORMAL_FEATURES", "effective_sigma"]
+
+#: The feature columns of the unit normal (judge/features.py).
+NORMAL_FEATURES = ("N_x", "N_y", "N_z")
+
+
+def effective_sigma(sig: np.ndarray, normals: np.ndarray, surface_class: np.ndarray, noise: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """(σ (M, 3) float64, class (M,) int8) for U: max(σ̂, noise·|N|) per axis where a row has a measured ``noise``
+    (M,) mm and a class ≥ 0; σ̂ elsewhere, and class −1 (the all-class multipliers) where the noise is not
+    measured. ``sig`` (M, 3) σ̂ mm (NaN rows stay NaN), ``normals`` (M, 3) the rows' unit normals, ``surface_class``
+    (M,) int (−1: none)."""
+    sig = np.asarray(sig, np.float64)
+    noise = np.asarray(noise, np.float64).reshape(-1)
+    cls = np.asarray(surface_class).reshape(-1)
+    if not (len(sig) == len(noise) == len(cls) == len(normals)):
+        raise ValueError(f"effective_sigma: {len(sig)} rows of sigma, {len(normals)} normals, {len(cls)} classes, "
+                         f"{len(noise)} noise scales")
+    has = np.isfinite(noise)
+    cls_eff = np.where(has, cls, -1).astype(np.int8)
+    use = has & (cls_eff >= 0)
+    measured = noise[:, None] * np.abs(np.asarray(normals, np.float64))
+    return np.where(use[:, None], np.maximum(sig, measured), sig), cls_eff
