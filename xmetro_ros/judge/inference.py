@@ -380,9 +380,8 @@ class ModelSet:
                                        noise: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(Q, P, F) → (errors (Q, P, 3), U (Q, P, 3)) mm: each version as :meth:`predict_with_uncertainty` would give
         it (with the points' classes ``surface_class`` and measured ``noise``: (P,) in every version, or (Q, P)),
-        errors and U from ONE ONNX
-        run per chunk of sets (the recommender's candidates; ``predict_batch``'s U). Rows must be finite. Raises
-        ModelLoadError without a calibration."""
+        errors and U from ONE ONNX run per chunk of sets (the recommender's candidates; ``predict_batch``'s U). Rows
+        must be finite. Raises ModelLoadError without a calibration."""
         if not self.calibrated:
             raise ModelLoadError(f"model set {self.id!r} has no uncertainty calibration (card 'uncertainty')")
         Xq = np.asarray(Xq, dtype=np.float32)
@@ -550,9 +549,8 @@ class ModelSet:
                                  noise: np.ndarray | None = None) -> np.ndarray:
         """(K, n, F) → U (K, n, 3) mm of each set's rows predicted as one PointNet set (as :meth:`predict_sets`),
         with the rows' surface classes ``surface_class`` and measured ``noise`` (K, n) when given; a set of the
-        partition of
-        :meth:`predict_with_uncertainty` with its points' classes gets exactly the published U of its points (the
-        explainer of U relies on it). Raises ModelLoadError without a calibration."""
+        partition of :meth:`predict_with_uncertainty` with its points' classes and noise gets exactly the published
+        U of its points (the explainer of U relies on it). Raises ModelLoadError without a calibration."""
         sets = np.asarray(sets, dtype=np.float32)
         k, n, f = sets.shape
         if not self.calibrated:

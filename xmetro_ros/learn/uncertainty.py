@@ -72,8 +72,8 @@ def predict_clouds(ms: ModelSet, X: np.ndarray, cloud_id: np.ndarray, with_u: bo
                    ) -> dict[str, np.ndarray]:
     """Published predictions for rows of several clouds, each cloud on its own (its rows form the sets, in row
     order); U with ``surface_class`` (the rows' classes) per class when the card is calibrated so, and with
-    ``noise`` (the rows' measured noise) where the card's U takes it. Returns errors,
-    sigma (and U, out_of_domain, domain_distance with ``with_u``), rows aligned with X."""
+    ``noise`` (the rows' measured noise) where the card's U takes it. Returns errors, sigma (and U, out_of_domain,
+    domain_distance with ``with_u``), rows aligned with X."""
     X = np.asarray(X, np.float32)
     cid = np.asarray(cloud_id)
     out: dict[str, np.ndarray] = {"errors": np.full((len(X), 3), np.nan), "sigma": np.full((len(X), 3), np.nan)}
