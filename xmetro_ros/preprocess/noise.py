@@ -14,7 +14,7 @@ where a calibration plate at the same incidence, view and stand-off gets 17-19 �
 in both. The measured scale reads 0.95-0.96 of the simulator's true noise on both and on two more surfaces
 (``tools/sigma_context.py``; test/test_noise.py holds it to 0.8-1.1). What it misses
 (noise correlated over more than a cell, e.g. speckle; lateral noise along the line) the conformal multiplier and
-σ̂ still carry: U uses the larger of the two (:meth:`xmetro_ros.judge.inference.ModelSet.effective_sigma`).
+σ̂ still carry: U uses the larger of the two (:func:`xmetro_ros.judge.measured_noise.effective_sigma`).
 
 Unorganized scans have no grid: NaN (their U uses σ̂ alone). Compiled with numba, parallel over grid rows (each
 point written by its own row, in one fixed order: the same bits at any thread count).
