@@ -132,3 +132,35 @@ def test_calibration_with_surfaces_gives_u_per_class_and_the_judge_uses_it(tmp_p
     plain = ms.predict_with_uncertainty(res.features)
     assert not np.array_equal(plain.U[cls == 0], up.U[cls == 0])
     assert res.shape_out_of_domain is not None and res.shape_out_of_domain[cls == 2].mean() < 0.2
+
+
+def test_adding_the_surfaces_keeps_the_cards_own_calibration(tmp_path) -> None:
+    """``_calibrate_default(..., keep_calibration=True)`` (``xmetro export-default --add-surfaces``, how the pose
+    model's card got its per-class U): the card's all-class multipliers, conditions and multivariate domain — what
+    the recommender uses — stay as they were, byte for byte; the per-class block (on the measured noise, with the
+    clouds it came from) and the (κmin, κmax) shape domain are added; a card without conditional U is refused."""
+    pytest.importorskip("open3d")
+    from xmetro_ros.apps.train import _calibrate_default
+
+    d = tmp_path / "m"
+    shutil.copytree(default_model_dir(), d)
+    card = json.loads((d / "card.json").read_text())
+    del card["uncertainty"]["conditional"]["by_surface"]
+    del card["domain_shape"]["principal"]
+    (d / "card.json").write_text(json.dumps(card))
+    _calibrate_default(d, "micro", 0, keep_calibration=True, by_source=True)
+    new = json.loads((d / "card.json").read_text())
+    u0, u1 = card["uncertainty"], new["uncertainty"]
+    assert u1["multiplier"] == u0["multiplier"] and u1["sigma_max_mm"] == u0["sigma_max_mm"]
+    assert u1["calibration_clouds"] == u0["calibration_clouds"]
+    assert {k: v for k, v in u1["conditional"].items() if k != "by_surface"} == u0["conditional"]
+    assert new["domain_mv"] == card["domain_mv"]
+    by = u1["conditional"]["by_surface"]
+    assert by["noise"]["window_cells"] == 7 and "sources" in by
+    assert any("calibration surfaces" in c for c in by["calibration_clouds"])
+    assert "principal" in new["domain_shape"] and ModelSet.load(d).by_surface
+
+    del card["uncertainty"]["conditional"]
+    (d / "card.json").write_text(json.dumps(card))
+    with pytest.raises(ValueError, match="no conditional U"):
+        _calibrate_default(d, "micro", 0, keep_calibration=True)

@@ -74,9 +74,9 @@ def test_each_scan_is_judged_by_the_model_whose_domain_holds_it(models, name, r_
 def test_a_looking_down_part_stays_with_the_primary(models):
     """A part scanned looking down (the step, presented as in the parts study) stays with the primary, whose figures
     on the parts are the documented ones (docs/parts-generalisation.md): its head orientation is the primary's, and
-    since the primary's card is calibrated on the calibration surfaces (0.7.3) its domain holds the part too — less
-    of it is outside the primary's domain than outside the pose model's (sphere-calibrated, mean-curvature shape
-    check)."""
+    since the primary's card is calibrated on the calibration surfaces (0.7.3) its domain holds the part too: under
+    ``ROUTE_MAX_OUT_OF_DOMAIN`` of it is outside, so the domain rule alone keeps it as well. (The pose model's card
+    has the surfaces' shape domain since 0.8.1: it holds the part about as well.)"""
     from xmetro_ros.parts.study import PRESENTATION
     from xmetro_ros.scan.generated_parts import make_part
 
@@ -85,7 +85,7 @@ def test_a_looking_down_part_stays_with_the_primary(models):
     scan = simulate_scan(make_part("step", form_um=40.0).transformed(PRESENTATION), ScanSettings(6.0, 3.0, 0.5),
                          seed=7)
     alone = {m.id: ScanHandler(m, scanner, HandlerParams()).process(scan) for m in (primary, pose)}
-    assert _ood(alone[primary.id]) < min(ROUTE_MAX_OUT_OF_DOMAIN, _ood(alone[pose.id]))
+    assert _ood(alone[primary.id]) < ROUTE_MAX_OUT_OF_DOMAIN / 2 and _ood(alone[pose.id]) < ROUTE_MAX_OUT_OF_DOMAIN
     both = ScanHandler(primary, scanner, HandlerParams(), pose_model=pose).process(scan)
     assert both.model_id == primary.id
     # the head orientation and the domain rule alone (no orientation given) agree

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as hst
 from hypothesis.extra import numpy as hnp
 
-from xmetro_ros.judge.conditions import multiplier_table, row_multipliers
+from xmetro_ros.judge.conditions import condition_index, multiplier_table, row_multipliers
 from xmetro_ros.judge.set_kernels import expand_u_conditional
 from xmetro_ros.judge.surface_class import (
     SURFACE_CLASSES,
@@ -136,6 +136,33 @@ def _block(with_classes: bool):
     cond = conditional_multipliers(X, names, res, sig, np.ones((m, 3), bool),
                                    surface_class=cls if with_classes else None)
     return {"multiplier": [1.0, 1.0, 1.0], "conditional": cond}, X, names, cls
+
+
+def test_each_sigma_source_of_a_class_cell_is_covered_on_its_own() -> None:
+    """Per-class multipliers on σ = max(σ̂, noise·|N|): in each cell, the rows where the noise term is the larger
+    (here it overstates their spread 2×) and those where σ̂ is (true to scale) are each covered at 95 %. Pooled, the
+    multiplier fell to ~1.65 and left the σ̂ rows at ~90 %; per group it is the σ̂ rows' ~1.96."""
+    rng = np.random.default_rng(4)
+    m = 60_000
+    names = ["Inc", "exposure_time"]
+    X = np.column_stack([rng.uniform(0.05, 1.0, m), np.full(m, 0.5)]).astype(np.float32)
+    cls = np.zeros(m, np.int8)
+    sig_hat = np.ones((m, 3))
+    noisy = rng.random(m) < 0.5
+    surf = np.where(noisy[:, None], 2.0, 1.0) * np.ones((1, 3))  # noise term 2: the larger, and twice the spread
+    res = rng.normal(0.0, 1.0, (m, 3))
+    ok = np.ones((m, 3), bool)
+    cond = conditional_multipliers(X, names, res, sig_hat, ok, surface_class=cls, surface_sigma=surf,
+                                   noise_block={"window_cells": 7}, by_source=True)
+    by = cond["by_surface"]
+    idx = condition_index(X, names, cond["incidence_edges_deg"], cond["exposure_edges_ms"])
+    k = np.array([[np.nan if v is None else v for v in by["own_multiplier"][0][c]] for c in idx])
+    hit = np.abs(res) <= k * surf
+    assert hit[~noisy].mean() > 0.94 and hit[noisy].mean() > 0.99
+    assert 1.8 < np.nanmedian(k) < 2.2 and "sources" in by
+    pooled = conditional_multipliers(X, names, res, surf, ok, surface_class=cls)["by_surface"]  # no source groups
+    kp = np.array([[np.nan if v is None else v for v in pooled["own_multiplier"][0][c]] for c in idx])
+    assert (np.abs(res) <= kp * surf)[~noisy].mean() < 0.92
 
 
 def test_u_per_surface_class_and_the_compiled_kernel_agree() -> None:

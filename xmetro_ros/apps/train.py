@@ -41,17 +41,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="run profile of the training (default full: the study's protocol)")
     src = e.add_mutually_exclusive_group()
     src.add_argument("--from", dest="from_dir", default=None,
-                     help=f"copy <DIR>/models/{DEFAULT_FAMILY} of a finished `xmetro train` run instead of training")
+                     help=f"copy <DIR>/models/{DEFAULT_FAMILY} of a finished `xmetro train` run")
     src.add_argument("--from-packaged", action="store_true",
-                     help="copy the packaged model set instead of training (to calibrate it again)")
+                     help="copy the packaged model set (to calibrate it again)")
+    src.add_argument("--from-model", default=None, metavar="DIR",
+                     help="copy the model set in DIR (e.g. xmetro_ros/models/posed)")
     dest = e.add_mutually_exclusive_group(required=True)
     dest.add_argument("--out", default=None, help="target directory")
     dest.add_argument("--replace-packaged", action="store_true",
-                      help="replace the model shipped in the package (models/default): never done without it")
+                      help="replace models/default in the package (never done without it)")
     e.add_argument("--no-calibrate", action="store_true",
-                   help="skip the conformal calibration on fresh clouds (the card then has no 'uncertainty')")
+                   help="skip the conformal calibration (the card then has no 'uncertainty')")
     e.add_argument("--no-surfaces", action="store_true",
-                   help="calibrate on the training campaign's shapes only (cards up to 0.7.2)")
+                   help="calibrate on the campaign's shapes only (cards up to 0.7.2)")
+    e.add_argument("--add-surfaces", action="store_true",
+                   help="keep the card's calibration; add the surfaces' per-class U and shape domain")
+    e.add_argument("--cover-sources", action="store_true",
+                   help="per-class cells cover each sigma source's rows on their own (models/posed)")
     e.set_defaults(func=run_export_default)
 
 
@@ -113,14 +119,24 @@ CALIBRATION_SEED_OFFSET = 1000  # calibration clouds: the profile's campaign sim
 CALIBRATION_POINTS_PER_CLOUD = 2000
 
 
-def _calibrate_default(model_dir: Path, profile: str, seed: int, surfaces: bool = True) -> None:
+def _calibrate_default(model_dir: Path, profile: str, seed: int, surfaces: bool = True,
+                       keep_calibration: bool = False, by_source: bool = False) -> None:
     """Split-conformal calibration of the default model set on clouds it never saw: the profile's campaign
-    simulated again with seed + CALIBRATION_SEED_OFFSET (same artifacts and settings, new clouds) and, with
-    ``surfaces``, the calibration surfaces (plates, grooves, a saddle, a filleted ridge at many tilts:
-    scan/calibration_surfaces.py) under the study's settings; CALIBRATION_POINTS_PER_CLOUD points per cloud, per
-    axis, per condition (learn/uncertainty.py) and per surface class (judge/surface_class.py), the latter on
-    max(σ̂, measured noise·|N|) (judge/measured_noise.py). The shape domain
-    (card ``domain_shape``: mean curvature range and the (κmin, κmax) cells) comes from the same clouds."""
+    simulated again with seed + CALIBRATION_SEED_OFFSET (same artifacts, settings and head poses, new clouds) and,
+    with ``surfaces``, the calibration surfaces (plates, grooves, a saddle, a filleted ridge at many tilts:
+    scan/calibration_surfaces.py) under the study's settings, from the campaign's head poses when it has some
+    (cycled as the campaign cycles them: "calibrate where the model judges"); CALIBRATION_POINTS_PER_CLOUD points
+    per cloud, per axis, per condition (learn/uncertainty.py) and per surface class (judge/surface_class.py), the
+    latter on max(σ̂, measured noise·|N|) (judge/measured_noise.py). The shape domain (card ``domain_shape``: mean
+    curvature range and the (κmin, κmax) cells) comes from the same clouds.
+
+    ``keep_calibration`` (with ``surfaces``): the card keeps its all-class multipliers and conditions and its
+    multivariate domain (the recommender's U and domain: its figures do not move) and gains the per-class block
+    (``uncertainty.conditional.by_surface``) and the shape domain; ValueError when the card's conditions are not
+    those the new block is laid out on. ``by_source``: the per-class multipliers cover each σ source's rows on
+    their own (learn/uncertainty.py ``conditional_multipliers``)."""
+    import numpy as np
+
     from ..judge.features import STUDY_FEATURES
     from ..judge.inference import update_card
     from ..learn.calibration_set import calibration_set
@@ -129,8 +145,10 @@ def _calibrate_default(model_dir: Path, profile: str, seed: int, surfaces: bool 
     from ..learn.uncertainty import calibrate, fit_domain
     from ..scan.calibration_surfaces import surface_campaign
     from ..sim import simulate_scan
-    from ..sim.campaign import study_campaign
+    from ..sim.campaign import campaign_pose, study_campaign
 
+    if keep_calibration and not surfaces:
+        raise ValueError("keeping the card's calibration adds the surfaces' blocks: it needs the surfaces")
     prof = get_profile(profile)
     cal_seed = seed + CALIBRATION_SEED_OFFSET
     items = study_campaign(seed=cal_seed, **dict(prof.campaign))
@@ -142,28 +160,66 @@ def _calibrate_default(model_dir: Path, profile: str, seed: int, surfaces: bool 
 
         sc = scanner or ScannerModel.load()
         # micro (tests): every 13th setting of each surface, 3 of 27 spanning the three exposures
-        surf = surface_campaign(sc, cal_seed, stride=13 if profile == "micro" else 1)
-        scans += [simulate_scan(a, st, scanner=sc, seed=sd) for a, st, sd, _ in surf]
-        labels += [f"calibration surfaces seed {cal_seed}: {lab}" for *_, lab in surf]
+        stride = 13 if profile == "micro" else 1
+        surf = surface_campaign(sc, cal_seed, stride=stride)
+        poses = prof.campaign.get("poses")
+        per_surface = len(sc.study_configurations()[::stride])  # surface_campaign: each surface's settings in turn
+        for i, (a, st, sd, lab) in enumerate(surf):
+            pose, where = None, ""
+            if poses:  # setting c of surface s from head pose (c + s) mod P, as study_campaign's cycle
+                s, c = divmod(i, per_surface)
+                k = (c + s) % len(poses)
+                pose, where = campaign_pose(a, np.asarray(poses[k], np.float64), sc), f" head pose {k}"
+            scans.append(simulate_scan(a, st, scanner=sc, seed=sd, pose=pose))
+            labels.append(f"calibration surfaces seed {cal_seed}: {lab}{where}")
     cs = calibration_set(scans, list(STUDY_FEATURES), max_points_per_cloud=CALIBRATION_POINTS_PER_CLOUD,
                          seed=cal_seed, scanner=scanner)
     t = cs.table
     labels = [f"campaign seed {cal_seed} item {i}: {c['label']} {c['artifact']['kind']}"
               for i, c in enumerate(t.clouds[: len(items)])] + labels
-    block = calibrate(model_dir, t.X, t.y, t.cloud_id, cloud_labels=labels,
-                      surface_class=cs.surface_class if surfaces else None, noise=cs.noise if surfaces else None)
+    card = json.loads((Path(model_dir) / "card.json").read_text())
+    block = calibrate(model_dir, t.X, t.y, t.cloud_id, cloud_labels=labels, write=not keep_calibration,
+                      surface_class=cs.surface_class if surfaces else None, noise=cs.noise if surfaces else None,
+                      by_source=by_source)
     shape = fit_shape_domain(cs.mean_curvature)
     extra: dict[str, Any] = {}
     if surfaces:
         shape["principal"] = fit_principal_domain(cs.principal)
+    if keep_calibration:
+        extra["uncertainty"] = _with_surface_block(card.get("uncertainty"), block, labels)
+    elif surfaces:
         # U is calibrated on these rows without any widening: the multivariate domain (where U is widened and the
         # point flagged) is theirs, the training campaign's shapes and the surfaces', not the training rows' alone
         extra["domain_mv"] = {**fit_domain(t.X), "fitted_on": "the calibration rows (training campaign simulated "
                               "again and the calibration surfaces), where U is calibrated"}
     update_card(model_dir, domain_shape=shape, **extra)
-    print(f"calibrated on {len(scans)} clouds: multipliers {[round(k, 3) for k in block['multiplier']]}; "
-          f"shape domain: mean curvature {shape['lo']:.4f} to {shape['hi']:.4f} /mm"
+    print(f"calibrated on {len(scans)} clouds: multipliers {[round(k, 3) for k in block['multiplier']]}"
+          + (" (not written: the card's are kept)" if keep_calibration else "")
+          + f"; shape domain: mean curvature {shape['lo']:.4f} to {shape['hi']:.4f} /mm"
           + (f", {len(shape['principal']['cells'])} (kmin, kmax) cells" if surfaces else ""))
+
+
+def _with_surface_block(old: dict[str, Any] | None, block: dict[str, Any], labels: list[str]) -> dict[str, Any]:
+    """The card's ``uncertainty`` block ``old`` with the per-surface-class multipliers of a new calibration
+    ``block`` (``conditional.by_surface``, labelled with the clouds it came from) and its U formula; ValueError when
+    ``old`` has no conditional multipliers or other conditions (incidence, exposure edges) than ``block``."""
+    import copy
+
+    new_cond = (block.get("conditional") or {})
+    if not old or not old.get("conditional"):
+        raise ValueError("the card has no conditional U to add per-class multipliers to: calibrate it in full")
+    if "by_surface" not in new_cond:
+        raise ValueError("the calibration gave no per-class multipliers (no surface classes in its rows)")
+    cond = old["conditional"]
+    for key in ("incidence_edges_deg", "exposure_edges_ms"):
+        if [float(v) for v in cond[key]] != [float(v) for v in new_cond[key]]:
+            raise ValueError(f"the card's conditions ({key} {cond[key]}) are not the new block's ({new_cond[key]})")
+    out = copy.deepcopy(old)
+    out["conditional"]["by_surface"] = {**new_cond["by_surface"], "calibration_clouds": labels,
+                                        "added": "to the card's own calibration (xmetro export-default "
+                                                 "--add-surfaces): all-class multipliers and domain_mv kept"}
+    out["U"] = block["U"]
+    return out
 
 
 def run_export_default(args: argparse.Namespace) -> int:
@@ -177,6 +233,8 @@ def run_export_default(args: argparse.Namespace) -> int:
             src = default_model_dir()
         elif args.from_dir:
             src = Path(args.from_dir) / "models" / DEFAULT_FAMILY
+        elif args.from_model:
+            src = Path(args.from_model)
         else:
             from ..learn.study import load_data, run_study
 
@@ -190,8 +248,17 @@ def run_export_default(args: argparse.Namespace) -> int:
         staged = Path(tmp) / "staged"
         shutil.copytree(src, staged)  # calibration writes the card: never into the --from directory
         src = staged
+        if args.add_surfaces and (args.no_calibrate or args.no_surfaces):
+            print("xmetro export-default: error: --add-surfaces calibrates on the surfaces: not with --no-calibrate "
+                  "or --no-surfaces", file=sys.stderr)
+            return 2
         if not args.no_calibrate:
-            _calibrate_default(src, args.profile, args.seed, surfaces=not args.no_surfaces)
+            try:
+                _calibrate_default(src, args.profile, args.seed, surfaces=not args.no_surfaces,
+                                   keep_calibration=args.add_surfaces, by_source=args.cover_sources)
+            except ValueError as e:
+                print(f"xmetro export-default: error: {e}", file=sys.stderr)
+                return 2
         ms = ModelSet.load(src)  # validates before replacing the shipped model
         if target.exists():
             shutil.rmtree(target)

@@ -131,10 +131,10 @@ def cross_conformal_by_cloud(y: np.ndarray, pred: np.ndarray, sigma: np.ndarray,
     return out
 
 
-def _cell_multipliers(cell: np.ndarray, n_cells: int, n_inc: int, res: np.ndarray, sig: np.ndarray, ok: np.ndarray,
-                      confidence: float, envelope: int) -> tuple[list, list, list]:
-    """(multipliers after the incidence envelope, own multipliers, counts), cell → [x, y, z], of the rows in each
-    condition ``cell`` (M,); None where a cell has fewer than MIN_POINTS usable rows on an axis."""
+def _own_multipliers(cell: np.ndarray, n_cells: int, res: np.ndarray, sig: np.ndarray, ok: np.ndarray,
+                     confidence: float) -> tuple[list, list]:
+    """(multipliers, counts), cell → [x, y, z], of the rows in each condition ``cell`` (M,); None where a cell has
+    fewer than MIN_POINTS usable rows on an axis."""
     mult: list[list[float | None]] = []
     counts: list[list[int]] = []
     for c in range(n_cells):
@@ -147,7 +147,13 @@ def _cell_multipliers(cell: np.ndarray, n_cells: int, n_inc: int, res: np.ndarra
             row_m.append(conformal_multiplier(res[m, a], sig[m, a], confidence) if k >= MIN_POINTS else None)
         mult.append(row_m)
         counts.append(row_n)
-    own = [list(r) for r in mult]
+    return mult, counts
+
+
+def _envelope(own: list, n_cells: int, n_inc: int, envelope: int) -> list:
+    """Each cell's multiplier: the largest of its own and those of the ``envelope`` incidence bins on either side
+    (same exposure); None stays None."""
+    mult = [list(r) for r in own]
     ne = n_cells // n_inc
     for c in range(n_cells):
         i, e = divmod(c, ne)
@@ -156,14 +162,30 @@ def _cell_multipliers(cell: np.ndarray, n_cells: int, n_inc: int, res: np.ndarra
                 continue
             near = [own[j * ne + e][a] for j in range(max(0, i - envelope), min(n_inc, i + envelope + 1))]
             mult[c][a] = max(m for m in near if m is not None)
-    return mult, own, counts
+    return mult
+
+
+def _cell_multipliers(cell: np.ndarray, n_cells: int, n_inc: int, res: np.ndarray, sig: np.ndarray, ok: np.ndarray,
+                      confidence: float, envelope: int, groups: np.ndarray | None = None) -> tuple[list, list, list]:
+    """(multipliers after the incidence envelope, own multipliers, counts), cell → [x, y, z], of the rows in each
+    condition ``cell`` (M,); None where a cell has fewer than MIN_POINTS usable rows on an axis. ``groups`` (M, 3)
+    bool: a cell's own multiplier on an axis is also at least that of its rows where ``groups`` is True and that of
+    the others, each with MIN_POINTS rows or more (every such subgroup covered at ``confidence``)."""
+    own, counts = _own_multipliers(cell, n_cells, res, sig, ok, confidence)
+    if groups is not None:
+        for g in (groups, ~groups):
+            sub, _ = _own_multipliers(cell, n_cells, res, sig, ok & g, confidence)
+            own = [[o if s is None else (s if o is None else max(o, s)) for o, s in zip(ro, rs, strict=True)]
+                   for ro, rs in zip(own, sub, strict=True)]
+    return _envelope(own, n_cells, n_inc, envelope), own, counts
 
 
 def conditional_multipliers(X: np.ndarray, feature_names: list[str], res: np.ndarray, sig: np.ndarray,
                             ok: np.ndarray, confidence: float = 0.95, envelope: int = ENVELOPE_BINS,
                             incidence_edges: tuple[float, ...] = INCIDENCE_EDGES_DEG,
                             surface_class: np.ndarray | None = None, surface_sigma: np.ndarray | None = None,
-                            noise_block: dict[str, Any] | None = None) -> dict[str, Any] | None:
+                            noise_block: dict[str, Any] | None = None, by_source: bool = False
+                            ) -> dict[str, Any] | None:
     """Mondrian split-conformal multipliers per calibration condition (judge/conditions.py: incidence 10° bins ×
     the exposure levels of the calibration rows): ``{"incidence_edges_deg", "exposure_edges_ms", "multiplier"
     (cell → [x, y, z] or None), "n" (cell → points per axis), "min_points"}``; None when the features lack Inc
@@ -179,7 +201,9 @@ def conditional_multipliers(X: np.ndarray, feature_names: list[str], res: np.nda
     (block ``by_surface``; a class's cell with too few points is None there and takes the all-class cell's).
     ``surface_sigma`` (M, 3): the σ (+ floor) the per-class multipliers are calibrated on instead of ``sig`` (max(σ̂,
     measured noise·|N|), :func:`calibrate`), described by ``noise_block`` (block ``by_surface.noise``); the
-    all-class ones stay on ``sig`` (σ̂: unorganized scans, the recommender)."""
+    all-class ones stay on ``sig`` (σ̂: unorganized scans, the recommender). ``by_source`` (with ``surface_sigma``):
+    a class's cell multiplier on an axis covers its rows where the noise term is the larger and those where σ̂ is,
+    each group on its own (the largest of the pooled and the two groups' multipliers; ``by_surface.sources``)."""
     if not set(CONDITION_FEATURES) <= set(feature_names):
         return None
     exp = np.asarray(X[:, list(feature_names).index("exposure_time")], np.float64)
@@ -202,8 +226,14 @@ def conditional_multipliers(X: np.ndarray, feature_names: list[str], res: np.nda
 
         cls = np.asarray(surface_class, np.int64)
         sig_s = sig if surface_sigma is None else surface_sigma
-        per = [_cell_multipliers(np.where(cls == k, cell, -1), n_cells, n_inc, res, sig_s, ok, confidence, envelope)
-               for k in range(len(SURFACE_CLASSES))]
+        # by_source: σ comes from two sources (max of σ̂ and the measured noise) and each source's rows of a cell
+        # are covered on their own. Pooled, on the pose model's calibration (its head poses) the rows where the noise
+        # overstates the error (tilted plates) pulled the multiplier of those where σ̂ is the larger term below
+        # what they need (a flat top seen from a tilted head); on the primary's (looking down) it was not needed
+        # and costs sharpness (docs/uncertainty.md)
+        groups = np.asarray(surface_sigma) > np.asarray(sig) if by_source and surface_sigma is not None else None
+        per = [_cell_multipliers(np.where(cls == k, cell, -1), n_cells, n_inc, res, sig_s, ok, confidence, envelope,
+                                 groups) for k in range(len(SURFACE_CLASSES))]
         out["by_surface"] = {
             "classes": list(SURFACE_CLASSES), "flat_curvature_per_mm": FLAT_CURVATURE_PER_MM,
             "sharp_curvature_per_mm": SHARP_CURVATURE_PER_MM, "radius_mm": RADIUS_MM,
@@ -213,6 +243,11 @@ def conditional_multipliers(X: np.ndarray, feature_names: list[str], res: np.nda
             "fallback": "a class's condition with fewer than min_points points (None) takes the all-class multiplier"}
         if noise_block:
             out["by_surface"]["noise"] = noise_block
+        if groups is not None:
+            out["by_surface"]["sources"] = (
+                "each cell's own multiplier covers, on each axis, its rows where the measured noise is the larger "
+                "term of sigma and those where sigma_hat is, each group with min_points rows or more (the largest "
+                "of the pooled and the groups' multipliers)")
     return out
 
 
@@ -220,7 +255,7 @@ def calibrate(model_dir: str | Path, X: np.ndarray, y: np.ndarray, cloud_id: np.
               confidence: float = 0.95, cloud_labels: list | None = None, write: bool = True,
               sigma_floor_mm: float = SIGMA_FLOOR_MM, conditional: bool = True,
               envelope: int = ENVELOPE_BINS, surface_class: np.ndarray | None = None,
-              noise: np.ndarray | None = None) -> dict[str, Any]:
+              noise: np.ndarray | None = None, by_source: bool = False) -> dict[str, Any]:
     """Split-conformal calibration of the model set in ``model_dir`` on calibration clouds (rows X (M, F),
     measured errors y (M, 3) mm, cloud ids): writes the card's ``uncertainty`` block (unless ``write`` False) and
     returns it. The clouds must be held out from training (the caller's split; their ids / labels are recorded).
@@ -228,7 +263,8 @@ def calibrate(model_dir: str | Path, X: np.ndarray, y: np.ndarray, cloud_id: np.
     ``conditional`` part, :func:`conditional_multipliers` with ``envelope``), which U then uses; with
     ``surface_class`` (M,) (the rows' classes, judge/surface_class.py) per condition and surface class as well;
     with ``noise`` (M,) (the rows' measured noise, mm along the normal, NaN: none; preprocess/noise.py) those per
-    class on max(σ̂, noise·|N|) (:mod:`xmetro_ros.judge.measured_noise`), the σ the judge then multiplies.
+    class on max(σ̂, noise·|N|) (:mod:`xmetro_ros.judge.measured_noise`), the σ the judge then multiplies;
+    ``by_source``: each σ source's rows of a class's cell covered on their own (:func:`conditional_multipliers`).
     """
     if not 0 < confidence < 1:
         raise ValueError(f"confidence must be in (0, 1), got {confidence}")
@@ -281,7 +317,8 @@ def calibrate(model_dir: str | Path, X: np.ndarray, y: np.ndarray, cloud_id: np.
                       "rows_with_noise": int(np.isfinite(np.asarray(noise, np.float64)).sum())}
         cond = conditional_multipliers(np.asarray(X), names, y - pred["errors"],
                                        pred["sigma"] + sigma_floor_mm, oks, confidence, envelope=envelope,
-                                       surface_class=cls, surface_sigma=surf_sig, noise_block=nblock)
+                                       surface_class=cls, surface_sigma=surf_sig, noise_block=nblock,
+                                       by_source=by_source)
         if cond is not None:
             block["conditional"] = cond
             block["U"] = ("multiplier of the point's condition (conditional: incidence bin x exposure level"

@@ -70,9 +70,12 @@ def _err_stats(r: np.ndarray) -> dict[str, list[float]]:
 
 
 def evaluate_part(name: str, handler: Any, settings: Any, *, seed: int = 0, form_um: float = FORM_UM,
-                  register: bool = True, keep_maps: bool = False, step_mm: float = 0.3) -> dict[str, Any]:
+                  register: bool = True, keep_maps: bool = False, step_mm: float = 0.3,
+                  head_rotation: np.ndarray | None = None) -> dict[str, Any]:
     """Simulate, judge and score one part at one setting (see the module docstring); returns a JSON-able dict
-    (``maps`` with per-point arrays when ``keep_maps``)."""
+    (``maps`` with per-point arrays when ``keep_maps``). ``head_rotation`` (3×3, head frame): scanned from the
+    looking-down start pose turned by it about the part's top (``sim.campaign.campaign_pose``, e.g. one of the
+    recommender's orientations, ``pose_grid()``); None: looking down. ``judged_by``: the model set that judged it."""
     from ..scan.generated_parts import make_part
     from ..sim import simulate_scan
     from .cad_judge import cad_deviation, summary_um
@@ -80,7 +83,12 @@ def evaluate_part(name: str, handler: Any, settings: Any, *, seed: int = 0, form
 
     cad = make_part(name, step_mm=step_mm)
     man = make_part(name, form_um=form_um, step_mm=step_mm).transformed(PRESENTATION)
-    scan = simulate_scan(man, settings, scanner=handler.scanner, seed=seed)
+    pose = None
+    if head_rotation is not None:
+        from ..sim.campaign import campaign_pose
+
+        pose = campaign_pose(man, np.asarray(head_rotation, np.float64), handler.scanner)
+    scan = simulate_scan(man, settings, scanner=handler.scanner, seed=seed, pose=pose)
     res = handler.process(scan)
     pts = np.asarray(res.scan.points, dtype=np.float64).reshape(-1, 3)
     pred = res.deviations
@@ -104,7 +112,8 @@ def evaluate_part(name: str, handler: Any, settings: Any, *, seed: int = 0, form
     model, oracle = _err_stats(e - actual), _err_stats(expected - actual)
     out: dict[str, Any] = {
         "part": name, "settings": [settings.lateral_density, settings.direction_density, settings.exposure_ms],
-        "seed": seed, "form_um": form_um, "points": len(i), "injected_outliers_excluded": int(inj.sum()),
+        "seed": seed, "form_um": form_um, "points": len(i), "judged_by": res.model_id,
+        "injected_outliers_excluded": int(inj.sum()),
         # the scan's verdict as the node publishes it (ScanQuality), and why
         "verdict": res.quality["verdict_name"], "verdict_message": res.quality["message"],
         "model": model, "oracle": oracle,
