@@ -5,7 +5,7 @@ Each of the test parts ``blade``, ``bowl`` and ``step`` (never in a training or 
 6/3/0.1 and 10/4/0.5 from three head poses of ``pose_grid()`` (tilted 15° or 21°, turned), seed 21, and scored by
 ``parts.study.evaluate_part`` against the simulator's truth: the model that judged it, the share of points flagged
 out of domain, the in-domain coverage of |actual − d| ≤ U per axis and of |after − true form| ≤ u_normal along the
-CAD normal. Its table is quoted in docs/parts.md ("Rescans from a tilted head").
+CAD normal. Its table is quoted in docs/parts-generalisation.md ("Rescans from a tilted head").
 """
 
 from __future__ import annotations

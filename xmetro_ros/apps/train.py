@@ -177,7 +177,6 @@ def _calibrate_default(model_dir: Path, profile: str, seed: int, surfaces: bool 
     t = cs.table
     labels = [f"campaign seed {cal_seed} item {i}: {c['label']} {c['artifact']['kind']}"
               for i, c in enumerate(t.clouds[: len(items)])] + labels
-    card = json.loads((Path(model_dir) / "card.json").read_text())
     block = calibrate(model_dir, t.X, t.y, t.cloud_id, cloud_labels=labels, write=not keep_calibration,
                       surface_class=cs.surface_class if surfaces else None, noise=cs.noise if surfaces else None,
                       by_source=by_source)
@@ -185,7 +184,8 @@ def _calibrate_default(model_dir: Path, profile: str, seed: int, surfaces: bool 
     extra: dict[str, Any] = {}
     if surfaces:
         shape["principal"] = fit_principal_domain(cs.principal)
-    if keep_calibration:
+    if keep_calibration:  # calibrate wrote nothing: the card still holds its own block
+        card = json.loads((Path(model_dir) / "card.json").read_text())
         extra["uncertainty"] = _with_surface_block(card.get("uncertainty"), block, labels)
     elif surfaces:
         # U is calibrated on these rows without any widening: the multivariate domain (where U is widened and the
@@ -205,7 +205,7 @@ def _with_surface_block(old: dict[str, Any] | None, block: dict[str, Any], label
     ``old`` has no conditional multipliers or other conditions (incidence, exposure edges) than ``block``."""
     import copy
 
-    new_cond = (block.get("conditional") or {})
+    new_cond = block.get("conditional") or {}
     if not old or not old.get("conditional"):
         raise ValueError("the card has no conditional U to add per-class multipliers to: calibrate it in full")
     if "by_surface" not in new_cond:
@@ -248,9 +248,8 @@ def run_export_default(args: argparse.Namespace) -> int:
         staged = Path(tmp) / "staged"
         shutil.copytree(src, staged)  # calibration writes the card: never into the --from directory
         src = staged
-        if args.add_surfaces and (args.no_calibrate or args.no_surfaces):
-            print("xmetro export-default: error: --add-surfaces calibrates on the surfaces: not with --no-calibrate "
-                  "or --no-surfaces", file=sys.stderr)
+        if args.add_surfaces and args.no_calibrate:  # with --no-surfaces, _calibrate_default says why
+            print("xmetro export-default: error: --add-surfaces calibrates: not with --no-calibrate", file=sys.stderr)
             return 2
         if not args.no_calibrate:
             try:
