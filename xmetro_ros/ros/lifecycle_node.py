@@ -84,7 +84,14 @@ class XmetroLifecycleNode(XmetroWiring, LifecycleNode):
         if hasattr(self, "_cv"):
             self._stop_worker()
         self._destroy_profile_inputs()  # the helper node and its executor thread, when profile_input is on
+        if hasattr(self, "_inputs"):  # destroyed while active: its action server would keep the node alive
+            self._destroy_actions()
         super().destroy_node()
+        # rclpy's LifecycleNode leaves its state machine, which holds the node's handle: without this the node and
+        # its DDS participant stay until the garbage collector runs (test_node_teardown.py).
+        state_machine = getattr(self, "_state_machine", None)
+        if state_machine is not None:
+            state_machine.destroy_when_not_in_use()
 
 
 def main(args: list[str] | None = None) -> int:
