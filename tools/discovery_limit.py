@@ -26,51 +26,43 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 SERVICE = "/xmetro_discovery_probe"
 
 
-def _context():
-    import rclpy
-    from rclpy.context import Context
-
-    ctx = Context()
-    rclpy.init(context=ctx)
-    return ctx
-
-
 def client(timeout: float) -> int:
     """Child process: 0 when the probe service is found within ``timeout`` seconds, 1 otherwise."""
     import rclpy
     from std_srvs.srv import Trigger
 
-    node = rclpy.create_node("discovery_probe_client", context=_context())
+    from xmetro_ros.ros.rclpy_util import new_context
+
+    node = rclpy.create_node("discovery_probe_client", context=new_context())
     found = node.create_client(Trigger, SERVICE).wait_for_service(timeout_sec=timeout)
     return 0 if found else 1
 
 
 def probe(k: int, timeout: float) -> tuple[bool, float]:
     """Keep ``k`` participants alive, serve the probe from one more; (found by a new process, seconds)."""
-    import threading
-
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
     from std_srvs.srv import Trigger
 
-    alive = []
-    for i in range(k):
-        ctx = _context()
-        alive.append((ctx, rclpy.create_node(f"discovery_filler_{i}", context=ctx)))
-    ctx = _context()
-    server = rclpy.create_node("discovery_probe_server", context=ctx)
-    server.create_service(Trigger, SERVICE, lambda _req, res: res)
-    executor = SingleThreadedExecutor(context=ctx)
-    executor.add_node(server)
-    threading.Thread(target=executor.spin, daemon=True).start()
-    t0 = time.monotonic()
-    rc = subprocess.run([sys.executable, __file__, "--client", "--timeout", str(timeout)], check=False).returncode
-    seconds = time.monotonic() - t0
-    executor.shutdown(timeout_sec=2.0)
-    for c, n in [*alive, (ctx, server)]:
-        n.destroy_node()
-        c.try_shutdown()
-    return rc == 0, seconds
+    from xmetro_ros.ros.rclpy_util import NodeSpinner
+
+    def server(ctx) -> Node:
+        node = Node("discovery_probe_server", context=ctx)
+        node.create_service(Trigger, SERVICE, lambda _req, res: res)
+        return node
+
+    def filler(i: int) -> NodeSpinner:
+        return NodeSpinner(lambda ctx: Node(f"discovery_filler_{i}", context=ctx))
+
+    fillers = [filler(i) for i in range(k)]
+    try:
+        with NodeSpinner(server):
+            t0 = time.monotonic()
+            rc = subprocess.run([sys.executable, __file__, "--client", "--timeout", str(timeout)],
+                                check=False).returncode
+            return rc == 0, time.monotonic() - t0
+    finally:
+        for sp in fillers:
+            sp.close()
 
 
 def main(argv: list[str] | None = None) -> int:

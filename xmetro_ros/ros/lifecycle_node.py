@@ -81,11 +81,7 @@ class XmetroLifecycleNode(XmetroWiring, LifecycleNode):
         self.diag = None
 
     def destroy_node(self) -> None:
-        if hasattr(self, "_cv"):
-            self._stop_worker()
-        self._destroy_profile_inputs()  # the helper node and its executor thread, when profile_input is on
-        if hasattr(self, "_inputs"):  # destroyed while active: its action server would keep the node alive
-            self._destroy_actions()
+        self._destroy_wiring()  # destroyed while active: the inputs are still there
         super().destroy_node()
         # rclpy's LifecycleNode leaves its state machine, which holds the node's handle: without this the node and
         # its DDS participant stay until the garbage collector runs (test_node_teardown.py).

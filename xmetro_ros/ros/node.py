@@ -266,14 +266,15 @@ class XmetroWiring(ProfileInput, ScanWorker, ServiceHandlers):
         self.get_logger().info(f"scan subscription now {want} to match its {len(offered)} publisher(s) "
                                "(reliability: auto)")
 
-    def _destroy_actions(self) -> None:
-        """Destroy the action servers among the inputs. ``Node.destroy_node`` does not: an action server holds the
-        node's handle, so without this the node and its DDS participant stay alive until the garbage collector
-        breaks the cycle (a participant per closed node; past 32 on one host, localhost discovery misses new
-        ones)."""
-        for ent in [e for e in self._inputs if isinstance(e, ActionServer)]:
-            ent.destroy()
-            self._inputs.remove(ent)
+    def _destroy_wiring(self) -> None:
+        """What ``destroy_node`` does before ``Node.destroy_node``: :meth:`_destroy_inputs` (the worker, the profile
+        input's helper node, and the action server, which ``Node.destroy_node`` leaves: it holds the node's handle,
+        so the node and its DDS participant would live until the garbage collector runs). Safe after a part-way
+        ``__init__`` (no inputs yet: no worker started)."""
+        if hasattr(self, "_inputs"):
+            self._destroy_inputs()
+        else:
+            self._destroy_profile_inputs()
 
     def _destroy_inputs(self) -> None:
         """Inverse of :meth:`_create_inputs`: no scan is taken or processed afterwards (queued ones are dropped)."""
@@ -381,12 +382,8 @@ class XmetroNode(XmetroWiring, Node):
         self._log_ready()
 
     def destroy_node(self) -> None:
-        # Also called when __init__ failed part-way (then the worker may not exist): never mask the first error.
-        if hasattr(self, "_cv"):
-            self._stop_worker()
-        self._destroy_profile_inputs()  # the helper node and its executor thread, when profile_input is on
-        if hasattr(self, "_inputs"):
-            self._destroy_actions()
+        # Also called when __init__ failed part-way: never mask the first error.
+        self._destroy_wiring()
         super().destroy_node()
 
 
