@@ -28,7 +28,32 @@ def pytest_configure(config) -> None:
         runner = str(ROOT / "tools" / "netns_run")
         os.execv(runner, [runner, sys.executable, "-m", "pytest", *config.invocation_params.args])
     apply_ros_env()
+    fastdds_shm_clean()
     _warm_kernels()
+
+
+def pytest_unconfigure(config) -> None:
+    # The tests that SIGKILL a DDS process leave its 64 MB shared-memory segment behind (test_shm_clean.py); on a
+    # machine that runs the suite again and again they would pile up in /dev/shm, holding its memory.
+    fastdds_shm_clean()
+
+
+def fastdds_shm_clean(check: bool = False) -> str:
+    """Run ``fastdds shm clean`` (the Fast DDS wheel's tool: removes the shared-memory segments and ports whose
+    owner process is gone, none in use) with this environment's Python first on PATH, as the tool runs ``python3``
+    and needs psutil. Returns its output; ``check`` raises on failure, else a failure only returns the message."""
+    import subprocess
+
+    env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
+    try:
+        out = subprocess.run(["fastdds", "shm", "clean"], env=env, capture_output=True, text=True, timeout=120)
+    except (OSError, subprocess.TimeoutExpired) as e:
+        if check:
+            raise
+        return f"fastdds shm clean failed: {e}"
+    if check and out.returncode != 0:
+        raise RuntimeError(f"fastdds shm clean exited with {out.returncode}: {out.stdout}{out.stderr}")
+    return out.stdout + out.stderr
 
 
 def _warm_kernels() -> None:

@@ -60,3 +60,21 @@ def test_a_destroyed_node_leaves_the_graph_without_the_garbage_collector(kind: s
             sp.close()
         assert wait_for(lambda: name not in _names(observer.node), TIMEOUT), \
             f"{name} is still in the ROS graph after destroy_node (something still holds its handle)"
+
+
+def test_a_service_not_found_names_what_the_client_sees() -> None:
+    """The not-available error of ``call_service`` says what the client's node sees: the live node, and no server
+    of the service it waited for, so a CI failure tells "nothing discovered" from "server seen, not matched"."""
+    from rclpy.node import Node
+
+    from xmetro_ros.ros.rclpy_util import ServiceTimeoutError, call_service
+    from xmetro_ros.srv import Explain
+
+    with NodeSpinner(lambda ctx: Node("xmetro_teardown_peer", context=ctx)), \
+            NodeSpinner(lambda ctx: Node("xmetro_teardown_client", context=ctx)) as cl:
+        assert wait_for(lambda: "xmetro_teardown_peer" in _names(cl.node), TIMEOUT)
+        client = cl.node.create_client(Explain, "/xmetro_teardown_gone/explain")
+        with pytest.raises(ServiceTimeoutError) as err:
+            call_service(client, Explain.Request(), timeout=0.5, node=cl.node)
+    msg = str(err.value)
+    assert "sees nodes [/xmetro_teardown_peer]" in msg and "0 server(s) of /xmetro_teardown_gone/explain" in msg, msg

@@ -263,7 +263,8 @@ _DEP_KEYS = {"numpy": "python3-numpy", "scipy": "python3-scipy", "yaml": "python
 _ROSDEP_KEYS = {"python3-numpy", "python3-scipy", "python3-yaml", "python3-onnxruntime-pip", "python3-open3d",
                 "python3-matplotlib", "python3-tqdm", "python3-numba", "python3-pandas", "python3-pytest",
                 "python3-pytest-timeout", "python3-hypothesis", "python3-sklearn", "python3-torch",
-                "python3-rosbags-pip", "python3-selenium", "chromium-browser", "chromedriver"}
+                "python3-rosbags-pip", "python3-selenium", "chromium-browser", "chromedriver",
+                "python3-psutil"}  # python3-psutil checked in rosdep/python.yaml 2026-11-29
 _OPTIONAL = {"lz4"}  # only for lz4-compressed chunks of other tools' bags (the reader says so when missing)
 
 

@@ -20,7 +20,7 @@ from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 from .dds_env import apply_requested_ros_env, ros_env
 
 __all__ = ["READY_MESSAGE", "NodeMixin", "NodeProcess", "NodeSpinner", "SequenceGaps", "ServiceTimeoutError",
-           "call_service", "new_context", "wait_for"]
+           "call_service", "graph_seen_by", "new_context", "wait_for"]
 
 # The line xmetro_node logs once it is up (ros/node.py); NodeProcess waits for it.
 READY_MESSAGE = "xmetro_node ready"
@@ -99,7 +99,8 @@ def wait_for(cond: Callable[[], bool], timeout: float = 30.0, period: float = 0.
     return bool(cond())
 
 
-def call_service(client: Any, request: Any, timeout: float = 60.0, attempt_timeout: float = 10.0) -> Any:
+def call_service(client: Any, request: Any, timeout: float = 60.0, attempt_timeout: float = 10.0,
+                 node: Any = None) -> Any:
     """Call a service from a client whose node spins in another thread; return the response.
 
     DDS discovery is asynchronous: ``wait_for_service`` only says the request reader is matched; the server's
@@ -107,12 +108,16 @@ def call_service(client: Any, request: Any, timeout: float = 60.0, attempt_timeo
     send response"). So the call is retried (requests must be idempotent), each attempt waiting twice as long as the
     previous one (first ``attempt_timeout``), until ``timeout`` seconds have passed.
 
+    ``node``, the client's node, only adds to the not-available error what that node sees of the graph (the other
+    nodes, the servers of the service), which tells "nothing discovered" from "server seen, endpoints not matched".
+
     Raises:
         ServiceTimeoutError: not available, or no answer within ``timeout`` seconds.
     """
     deadline = time.monotonic() + timeout
     if not client.wait_for_service(timeout_sec=timeout):
-        raise ServiceTimeoutError(f"service {client.srv_name} not available within {timeout:g} s")
+        seen = "" if node is None else f"; {graph_seen_by(node, client.srv_name)}"
+        raise ServiceTimeoutError(f"service {client.srv_name} not available within {timeout:g} s{seen}")
     while True:
         done = threading.Event()
         future = client.call_async(request)
@@ -128,6 +133,13 @@ def call_service(client: Any, request: Any, timeout: float = 60.0, attempt_timeo
         client.remove_pending_request(future)
         if time.monotonic() >= deadline:
             raise ServiceTimeoutError(f"service {client.srv_name} did not answer within {timeout:g} s")
+
+
+def graph_seen_by(node: Any, service: str) -> str:
+    """One line: the other nodes ``node`` sees and how many servers of ``service`` it sees."""
+    names = sorted(f"{ns.rstrip('/')}/{n}" for n, ns in node.get_node_names_and_namespaces() if n != node.get_name())
+    servers = node.count_services(service)
+    return f"{node.get_name()} sees nodes [{', '.join(names)}] and {servers} server(s) of {service}"
 
 
 class NodeProcess:
