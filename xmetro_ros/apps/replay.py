@@ -281,8 +281,9 @@ class _Replayer:
 
     def _graph_summary(self) -> str:
         """What this participant sees of the graph (for the not-found error): the counts waited for and the nodes."""
-        names = sorted(f"{ns.rstrip('/')}/{n}" for n, ns in self.node.get_node_names_and_namespaces()
-                       if n != "xmetro_replay")
+        from ..ros.rclpy_util import other_nodes
+
+        names = other_nodes(self.node)
         return (f"seen: {self.node.count_subscribers(self.scan_topic)} subscription(s) of {self.scan_topic}, "
                 f"{self.node.count_publishers(self.out['quality'])} publisher(s) of {self.out['quality']}, "
                 f"nodes: {', '.join(names) if names else 'none'}")

@@ -20,7 +20,7 @@ from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 from .dds_env import apply_requested_ros_env, ros_env
 
 __all__ = ["READY_MESSAGE", "NodeMixin", "NodeProcess", "NodeSpinner", "SequenceGaps", "ServiceTimeoutError",
-           "call_service", "graph_seen_by", "new_context", "wait_for"]
+           "call_service", "graph_seen_by", "new_context", "other_nodes", "wait_for"]
 
 # The line xmetro_node logs once it is up (ros/node.py); NodeProcess waits for it.
 READY_MESSAGE = "xmetro_node ready"
@@ -135,11 +135,15 @@ def call_service(client: Any, request: Any, timeout: float = 60.0, attempt_timeo
             raise ServiceTimeoutError(f"service {client.srv_name} did not answer within {timeout:g} s")
 
 
+def other_nodes(node: Any) -> list[str]:
+    """The full names of the nodes ``node`` sees in the graph, itself left out, sorted."""
+    return sorted(f"{ns.rstrip('/')}/{n}" for n, ns in node.get_node_names_and_namespaces() if n != node.get_name())
+
+
 def graph_seen_by(node: Any, service: str) -> str:
     """One line: the other nodes ``node`` sees and how many servers of ``service`` it sees."""
-    names = sorted(f"{ns.rstrip('/')}/{n}" for n, ns in node.get_node_names_and_namespaces() if n != node.get_name())
     servers = node.count_services(service)
-    return f"{node.get_name()} sees nodes [{', '.join(names)}] and {servers} server(s) of {service}"
+    return f"{node.get_name()} sees nodes [{', '.join(other_nodes(node))}] and {servers} server(s) of {service}"
 
 
 class NodeProcess:
