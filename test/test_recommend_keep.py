@@ -8,7 +8,7 @@ import pytest
 
 from xmetro_ros.judge.features import FeatureContext, compute_features
 from xmetro_ros.plan.recommend import EXPOSURE_U_SCALE, gain_and_uncertainty, recommend, u_scale
-from xmetro_ros.scan.artifacts import Cylinder, Sphere
+from xmetro_ros.scan.artifacts import Sphere
 from xmetro_ros.scan.geometry import point_geometry
 from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
 from xmetro_ros.sim import simulate_scan
@@ -89,34 +89,18 @@ def test_random_part_scaled_per_exposure_and_keep_rule():
     assert g == pytest.approx(gain) and u > g and f"{u * 1e3:.1f} um" in keep.note
 
 
-# Held-out regions of one's own (seeds 9000 + i, never used for training, validation or the test regions): set-ups
-# near their best (0.5 ms, regions near the top, the issue's case: a random region of the 45 mm sphere judged at
-# 10/4/0.5, and its top) and set-ups far from it (0.1 ms, 2 ms, sloped regions).
-OWN_REGIONS = [
-    (Sphere(22.5), (10.0, 4.0, 0.5), (0.526, 0.457, 0.717)),
-    (Sphere(22.5), (10.0, 4.0, 0.5), (-0.066, 0.209, 0.976)),
-    (Sphere(17.5), (6.0, 5.0, 0.5), (0.126, 0.568, 0.813)),
-    (Sphere(22.5), (15.0, 5.0, 0.5), (0.002, -0.196, 0.981)),
-    (Cylinder(20.0), (6.0, 5.0, 0.5), (0.223, 0.007, 0.975)),
-    (Sphere(22.5), (10.0, 4.0, 0.5), (0.0, 0.0, 1.0)),
-    (Sphere(17.5), (15.0, 5.0, 0.1), (-0.121, -0.214, 0.969)),
-    (Sphere(27.5), (6.0, 3.0, 2.0), (-0.555, -0.358, 0.751)),
-    (Cylinder(20.0), (10.0, 3.0, 0.1), (-0.513, -0.477, 0.714)),
-]
-
-
 def test_no_followed_recommendation_makes_a_region_worse():
     """Issue 29's acceptance on the shipped model sets as the node runs them (``plan.resim.verify`` exactly as
     ``xmetro verify-recommend``: the primary or the pose model judges by routing, the pose model searches), over
-    the held-out regions above: no region worse than staying beyond the re-simulation noise (3 × the spread of the
-    difference: hypot of the before and after p95 spreads over the 3 evaluation seeds; the convention of
-    test_verify_recommend's acceptance), median after / best ≤ 1.1; the issue's case (region 1: a 45 mm sphere at
-    10/4/0.5, a predicted gain inside its uncertainty) keeps the current set-up."""
-    from xmetro_ros.apps.verify_recommend import verify_regions
+    the held-out regions (``verify_recommend.HELD_OUT_REGIONS``): no region worse than staying beyond the
+    re-simulation noise (3 × the spread of the difference: hypot of the before and after p95 spreads over the 3
+    evaluation seeds; the convention of test_verify_recommend's acceptance), median after / best ≤ 1.1; the issue's
+    case (region 1: a 45 mm sphere at 10/4/0.5, a predicted gain inside its uncertainty) keeps the current set-up."""
+    from xmetro_ros.apps.verify_recommend import HELD_OUT_REGIONS, verify_regions
 
-    rep = verify_regions(None, region_set=OWN_REGIONS, seed=9000)
+    rep = verify_regions(None, region_set="held-out")
     R = rep["regions"]
-    assert len(R) == len(OWN_REGIONS) and rep["region_set"] == "own"
+    assert len(R) == len(HELD_OUT_REGIONS) and rep["region_set"] == "held-out"
     for k, r in enumerate(R):
         a, p, g = r["actual_p95_um"], r["predicted_p95_um"], r["predicted_gain_um"]
         print(f"region {k} {r['judged_settings']}: {'kept' if r['kept_current'] else 'changed'} "

@@ -12,7 +12,16 @@ from scipy.spatial import cKDTree
 
 from xmetro_ros.judge.features import FeatureContext, compute_features
 from xmetro_ros.plan.recommend import coverage_mask, gain_and_uncertainty, p95_interval_halfwidth, recommend
-from xmetro_ros.plan.resim import GroundTruth, Region, _window, resim_seeds, resimulate, resimulate_many, verify
+from xmetro_ros.plan.resim import (
+    GroundTruth,
+    Region,
+    _window,
+    effect_ablation,
+    resim_seeds,
+    resimulate,
+    resimulate_many,
+    verify,
+)
 from xmetro_ros.scan.artifacts import Cylinder, Sphere
 from xmetro_ros.scan.geometry import orientation_grid, point_geometry
 from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
@@ -306,6 +315,29 @@ def test_resimulate_many_shares_seeds(scanner):
     assert a.p95_mm == b.p95_mm and a.n_seeds == 2 and a.predicted_p95_mm == 0.01 and b.predicted_p95_mm is None
     with pytest.raises(ValueError, match="ball"):
         Region(centre=np.zeros(3), radius_mm=0.0)
+
+
+def test_effect_ablation_traces_the_systematic_error_to_its_effect(scanner):
+    """With the stand-off effect alone, the top of the 55 mm sphere (r ≈ 62.5 mm) is off by its documented law
+    along the ray, |0.02 ζ + 0.01 ζ²| mm with ζ = (62.5 − 90) / 35 (9.6 µm), and switching it off leaves nothing;
+    with a second effect, each entry is the systematic p95 with that one switched off, keys = the enabled effects."""
+    from xmetro_ros.sim.effects import EFFECTS
+
+    judged = simulate_scan(Sphere(27.5), ScanSettings(6.0, 3.0, 0.5), scanner=scanner, seed=5)
+    region = Region(centre=np.array([0.0, 0.0, 27.5]), radius_mm=2.0)
+    only = {n: n == "standoff" for n in EFFECTS}
+    truth = GroundTruth.from_scan(judged, scanner, effects=only)
+    ab = effect_ablation(truth, region, judged.settings, judged.pose, seeds=[3])
+    z = (62.5 - 90.0) / 35.0
+    assert set(ab) == {"all", "standoff"}
+    assert ab["all"] == pytest.approx(abs(0.02 * z + 0.01 * z**2), rel=0.1) and ab["standoff"] < 1e-9
+    two = GroundTruth.from_scan(judged, scanner, effects={**only, "centroid": True})
+    ab2 = effect_ablation(two, region, judged.settings, judged.pose, seeds=[3])
+    assert set(ab2) == {"all", "standoff", "centroid"}
+    assert ab2["centroid"] == pytest.approx(ab["all"], rel=1e-9)  # centroid off: the stand-off alone again
+    alone = resimulate(GroundTruth.from_scan(judged, scanner, effects={**only, "standoff": False, "centroid": True}),
+                       region, judged.settings, judged.pose, seeds=[3])
+    assert ab2["standoff"] == pytest.approx(alone.sys_p95_mm, rel=1e-9) and ab2["all"] != ab2["standoff"]
 
 
 def test_scan_grid_window_keeps_the_full_grids_rays(scanner):

@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from xmetro_ros.apps import cli
-from xmetro_ros.apps.verify_recommend import REGIONS, VALIDATION_REGIONS, region_centre, verify_regions
+from xmetro_ros.apps.verify_recommend import (
+    HELD_OUT_REGIONS,
+    REGIONS,
+    VALIDATION_REGIONS,
+    region_centre,
+    verify_regions,
+)
 
 
 def test_region_centres_lie_on_the_artifacts():
@@ -17,16 +23,29 @@ def test_region_centres_lie_on_the_artifacts():
         for art, _, d in regions:
             c = region_centre(art, d)
             np.testing.assert_allclose(art.project(c[None])[0], c, atol=1e-9)
-    # the validation regions (for choosing a model) are not the test regions
-    test = {(a.to_dict().__repr__(), tuple(np.round(region_centre(a, d), 6))) for a, _, d in REGIONS}
-    assert not test & {(a.to_dict().__repr__(), tuple(np.round(region_centre(a, d), 6)))
-                       for a, _, d in VALIDATION_REGIONS}
+    # held-out: on the cylinder, region_centre reads x and z of a direction with a y part, so the last region's
+    # centre lies 2.4 mm inside the surface (its 4 mm ball still holds surface points); kept as issue 29 was checked
+    depth = [float(np.linalg.norm(a.project(region_centre(a, d)[None])[0] - region_centre(a, d)))
+             for a, _, d in HELD_OUT_REGIONS]
+    assert max(depth[:-1]) < 1e-3 and 2.0 < depth[-1] < 2.5
+    # the validation regions (for choosing a model) are not the test regions, not even in place; the held-out ones
+    # are other judged set-ups (a place recurs at other settings: the 45 mm sphere's top, validation and held-out)
+    def places(regions):
+        return {(a.to_dict().__repr__(), tuple(np.round(region_centre(a, d), 6))) for a, _, d in regions}
+
+    def setups(regions):
+        return {(a.to_dict().__repr__(), st, tuple(np.round(region_centre(a, d), 6))) for a, st, d in regions}
+
+    assert not places(REGIONS) & places(VALIDATION_REGIONS)
+    held = setups(HELD_OUT_REGIONS)
+    assert len(held) == len(HELD_OUT_REGIONS) and not held & (setups(REGIONS) | setups(VALIDATION_REGIONS))
 
 
 @pytest.fixture(scope="module")
 def quick_report(tmp_path_factory):
     out = tmp_path_factory.mktemp("verify") / "v.json"
-    assert cli.main(["verify-recommend", "--quick", "--regions", "1", "--radius", "3", "--out", str(out)]) == 0
+    assert cli.main(["verify-recommend", "--quick", "--regions", "1", "--radius", "3", "--effects",
+                     "--out", str(out)]) == 0
     return json.loads(out.read_text())
 
 
@@ -44,6 +63,14 @@ def test_verify_recommend_cli(quick_report):
     assert "noise is ignored" in r["note"] or "|d| + |U|" in r["note"]
     assert 5.0 < a["before"] < 200.0 and r["coverage_after"] > 0.5
     assert rep["median"]["after_over_best"] == pytest.approx(r["after_over_best"])
+    # --effects: before's and after's systematic p95 with each effect switched off, next to the predicted one
+    for k in ("before", "after"):
+        e = r["systematic_p95_um"][k]
+        assert e["predicted"] > 0 and {"all", "standoff", "centroid", "motion_blur"} <= set(e["actual_without"])
+        assert all(np.isfinite(v) and v >= 0 for v in e["actual_without"].values())
+        # speckle is random only: the systematic part without it is the same; the stand-off bias is systematic
+        assert e["actual_without"]["speckle"] == pytest.approx(e["actual_without"]["all"], rel=1e-9)
+        assert e["actual_without"]["standoff"] != pytest.approx(e["actual_without"]["all"], rel=1e-3)
 
 
 def test_verify_recommend_refuses_a_pose_model_that_does_not_match(tmp_path, capsys):
