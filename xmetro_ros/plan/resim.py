@@ -288,10 +288,11 @@ def effect_ablation(truth: GroundTruth, region: Region, settings: ScanSettings, 
     from ..sim.effects import resolve_effects
 
     seeds = list(seeds) if seeds is not None else resim_seeds(truth, n_seeds)
-    out = {"all": resimulate(truth, region, settings, pose, seeds=seeds).sys_p95_mm}
+    ref = _reference_points(truth, region)  # once, as resimulate_many does (only the coverage reads it)
+    out = {"all": resimulate(truth, region, settings, pose, seeds=seeds, reference=ref).sys_p95_mm}
     for fx in resolve_effects(truth.scanner.effects, truth.effects):
         off = replace(truth, effects={**(truth.effects or {}), fx.name: False})
-        out[fx.name] = resimulate(off, region, settings, pose, seeds=seeds).sys_p95_mm
+        out[fx.name] = resimulate(off, region, settings, pose, seeds=seeds, reference=ref).sys_p95_mm
     return out
 
 
