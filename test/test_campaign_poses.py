@@ -43,6 +43,24 @@ def test_campaign_with_poses_layout():
         study_campaign(SC, poses=g, pose_mode="some")
 
 
+def test_campaign_pose_cycles():
+    """``pose_cycles`` n: each configuration from n poses, the first cycle the campaign of n = 1 item for item."""
+    g = pose_grid()
+    one, two = study_campaign(SC, seed=0, poses=g), study_campaign(SC, seed=0, poses=g, pose_cycles=2)
+    assert len(two) == 216 and len({i.seed for i in two}) == 216
+    for ai in range(4):
+        part = two[54 * ai: 54 * (ai + 1)]
+        assert [(i.pose_index, i.config_index) for i in part[:27]] == \
+            [(i.pose_index, i.config_index) for i in one[27 * ai: 27 * (ai + 1)]]
+        per_config = {c: {i.pose_index for i in part if i.config_index == c} for c in range(27)}
+        assert all(len(p) == 2 for p in per_config.values())  # two different poses for every configuration
+        assert sorted(i.pose_index for i in part) == sorted(list(range(27)) * 2)
+    assert [(i.seed, i.pose_index) for i in one[:27]] == [(i.seed, i.pose_index) for i in two[:27]]
+    for bad in (0, 28, 1.5):
+        with pytest.raises(ValueError, match="pose_cycles"):
+            study_campaign(SC, poses=g, pose_cycles=bad)
+
+
 @pytest.mark.parametrize("artifact", [Sphere(17.5), Sphere(27.5), Cylinder(20.0)], ids=["s35", "s55", "cyl"])
 def test_rotated_campaign_scans_cover_the_artifact(artifact):
     """Every pose of the grid scans the artifact's top as fully as looking down: no empty scan, the pivot (top of

@@ -7,7 +7,15 @@ import numpy as np
 import pytest
 
 from xmetro_ros.judge.features import FeatureContext, compute_features
-from xmetro_ros.plan.recommend import EXPOSURE_U_SCALE, gain_and_uncertainty, recommend, u_scale
+from xmetro_ros.plan.recommend import (
+    EXPOSURE_U_SCALE,
+    PREDICTION_REL_UNC,
+    RecommendCalibration,
+    gain_and_uncertainty,
+    recommend,
+    recommend_calibration,
+    u_scale,
+)
 from xmetro_ros.scan.artifacts import Sphere
 from xmetro_ros.scan.geometry import point_geometry
 from xmetro_ros.scan.scanner import ScannerModel, ScanSettings
@@ -87,6 +95,44 @@ def test_random_part_scaled_per_exposure_and_keep_rule():
     assert keep.top.settings == change.top.settings  # the best-ranked candidate is still reported
     g, u = gain_and_uncertainty(keep.before, keep.top, rel)
     assert g == pytest.approx(gain) and u > g and f"{u * 1e3:.1f} um" in keep.note
+
+
+def test_the_searched_model_sets_own_calibration():
+    """A model card's ``recommend`` block (``xmetro verify-recommend --calibrate --write-card``) replaces the shipped
+    pose model's factors on U and relative uncertainty in the search, says so in the note; a malformed one is
+    refused; explicit arguments still win."""
+    scanner = ScannerModel.load()
+    judged = simulate_scan(Sphere(22.5), ScanSettings(6.0, 3.0, 0.5), scanner=scanner, seed=6)
+    ctx = _context(judged, scanner)
+    c0 = np.array([9.0, 0.0, np.sqrt(22.5**2 - 81)])
+    rows = np.flatnonzero(np.linalg.norm(np.asarray(ctx.points) - c0, axis=1) < 4)
+    m = Tilted(lambda X: np.full((len(X), 3), 0.004))
+    feats = compute_features(list(m.feature_names), ctx)
+    kw = dict(max_points=300, tilt_steps=3, turn_steps=1, in_domain=False)
+    args = (m, ctx, rows, feats, judged.pose, scanner, judged.settings)
+    assert recommend_calibration(m) == RecommendCalibration(EXPOSURE_U_SCALE, PREDICTION_REL_UNC,
+                                                            "the shipped pose model's")
+    shipped = recommend(*args, **kw)
+    assert "recommender calibration: the shipped pose model's" in shipped.note
+    explicit = recommend(*args, **kw, exposure_u_scale=EXPOSURE_U_SCALE, prediction_rel_unc=PREDICTION_REL_UNC)
+    assert [c.score_mm for c in shipped.ranked] == [c.score_mm for c in explicit.ranked]
+    assert "recommender calibration" not in explicit.note
+    change = recommend(*args, **kw, exposure_u_scale={0.5: 1.0, 2.0: 3.0}, prediction_rel_unc=0.0)
+    gain, _ = gain_and_uncertainty(change.before, change.top, 0.0)
+    rel = 1.5 * gain / np.hypot(change.before.reported_p95_mm, change.top.reported_p95_mm)
+    # JSON keys are strings: the card's exposures are read as numbers
+    m.card = {"recommend": {"exposure_u_scale": {"0.5": 1.0, "2.0": 3.0}, "prediction_rel_unc": rel}}
+    own = recommend(*args, **kw)
+    assert own.kept_current and "keep the current set-up" in own.note
+    assert "recommender calibration: the model card's" in own.note
+    by = {(c.settings, c.rotation.tobytes()): c for c in change.ranked}
+    assert all(c.u_p95_mm == pytest.approx(by[(c.settings, c.rotation.tobytes())].u_p95_mm) for c in own.ranked)
+    assert not recommend(*args, **kw, prediction_rel_unc=0.0).kept_current  # an explicit figure wins
+    for bad in ({"prediction_rel_unc": 0.1}, {"exposure_u_scale": {"0.5": 1.0}, "prediction_rel_unc": -0.1},
+                {"exposure_u_scale": {"0.5": "x"}, "prediction_rel_unc": 0.1}):
+        m.card = {"recommend": bad}
+        with pytest.raises(ValueError, match="'recommend' block"):
+            recommend(*args, **kw)
 
 
 def test_no_followed_recommendation_makes_a_region_worse():

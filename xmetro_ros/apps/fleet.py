@@ -301,8 +301,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="write processing_latency = 0 so outputs are identical byte for byte run after run")
     q.add_argument("--redo", action="store_true", help="recompute bags whose outputs exist")
     q.add_argument("--allow-partial", action="store_true",
-                   help="exit 0 when bags lost data (damaged, truncated) but what they held was judged; by default "
-                        "a damaged bag is an error (exit 1), as in xmetro predict")
+                   help="exit 0 when bags lost data but what they held was judged (default: exit 1, as xmetro predict)")
     q.set_defaults(func=run)
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
 

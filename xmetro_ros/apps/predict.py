@@ -305,8 +305,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--topic", action="append", help="PointCloud2 topic to judge (repeatable; default: all inputs)")
     p.add_argument("--param", action="append", metavar="NAME=VALUE", help="node parameter override (repeatable)")
     p.add_argument("--allow-partial", action="store_true",
-                   help="exit 0 when the bag lost data (truncated, damaged chunks) and what it held was judged; by "
-                        "default a damaged bag is an error (exit 1; the output still holds every readable scan)")
+                   help="exit 0 when the bag lost data and what it held was judged (default: exit 1; the output still "
+                        "holds every readable scan)")
     p.add_argument("--deterministic", action="store_true",
                    help="processing_latency written as 0 and CDR padding zeroed: identical bytes run after run")
     p.add_argument("--cad", default=None, metavar="PART.stl",

@@ -25,7 +25,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--node-name", default="xmetro_node", help="the node whose outputs to read (default xmetro_node)")
     p.add_argument("--tolerance", type=float, default=None, metavar="METRES",
                    help="the judging node's `tolerance` parameter, stated beside the decisions (a bag does not record "
-                        "the node's parameters; default: the node's default)")
+                        "it; default: the node's)")
     p.set_defaults(func=run)
 
 

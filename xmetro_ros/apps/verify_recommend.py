@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from ..plan.recommend import PREDICTION_REL_UNC
+from ..plan.recommend import FROM_MODEL, recommend_calibration
 from ..scan.artifacts import Artifact, Cylinder, Sphere
 from ..scan.geometry import matrix_to_quat
 from ..scan.scanner import ScanSettings
@@ -115,7 +115,7 @@ def _judged_region(handler: Any, scanner: Any, art: Artifact, st: tuple[float, f
 
 def calibrate(model_dir: Path | None = None, pose_model_dir: Path | str | None = None, radius_mm: float = 4.0,
               top: int = 20, quantile: float = 0.05, n_regions: int = len(VALIDATION_REGIONS),
-              **recommend_kw: Any) -> dict[str, Any]:
+              write_card: Path | None = None, **recommend_kw: Any) -> dict[str, Any]:
     """The recommender's calibration (``recommend.EXPOSURE_U_SCALE``, ``PREDICTION_REL_UNC``) from the nine
     *validation* regions (seeds 8000 + i), the node's models (as :func:`verify_regions`).
 
@@ -125,14 +125,19 @@ def calibrate(model_dir: Path | None = None, pose_model_dir: Path | str | None =
        predicted gain over the current set-up, e = (actual before − actual candidate) − (predicted before −
        predicted candidate) (before on 3 seeds, the candidate on its one), over sqrt(p_before² + p_candidate²)
        (predicted): the ``quantile`` of that (an over-predicted gain is negative), sign flipped → the relative
-       uncertainty of one predicted p95.
+       uncertainty of one predicted p95 (0 when even that quantile is an under-predicted gain).
 
-    ``n_regions``: the first N validation regions; ``recommend_kw``: passed to the searches (e.g. a smaller grid)."""
+    ``n_regions``: the first N validation regions; ``recommend_kw``: passed to the searches (e.g. a smaller grid).
+    ``write_card``: the directory of the searched model set: both figures go into its card's ``recommend`` block,
+    which the search (the node's too) then uses instead of the shipped pose model's (ValueError, nothing written,
+    when that directory holds another model set)."""
     from ..plan.recommend import recommend
     from ..plan.resim import GroundTruth, Region, resim_seeds, resimulate, resimulate_many
 
     scanner, _, pose, handler = _models(model_dir, pose_model_dir)
     search = pose if pose is not None else handler.model
+    if write_card is not None:
+        _card_of(Path(write_card), search.id)  # refused before the work, not after it
     regions, seed0 = REGION_SETS["validation"]
     ratio: dict[float, list[float]] = {}
     runs: list[tuple[tuple[Any, ...], dict[Any, float], float]] = []
@@ -161,11 +166,42 @@ def calibrate(model_dir: Path | None = None, pose_model_dir: Path | str | None =
             if np.isfinite(act_k):
                 pb, pk = rec.before.reported_p95_mm, k.reported_p95_mm
                 err.append(((before_p95 - act_k) - (pb - pk)) / np.hypot(pb, pk))
-    return {"model": search.id, "region_set": "validation", "exposure_u_scale": table,
-            "random_over_u_p95_median": med, "n_per_exposure": {e: len(v) for e, v in sorted(ratio.items())},
-            "prediction_rel_unc": round(-float(np.quantile(err, quantile)), 3),
-            "gain_error_rel": {"quantile": quantile, "n": len(err), "mean": float(np.mean(err)),
-                               "sd": float(np.std(err))}}
+    rep: dict[str, Any] = {
+        "model": search.id, "region_set": "validation", "n_regions": min(n_regions, len(regions)),
+        "exposure_u_scale": table, "random_over_u_p95_median": med,
+        "n_per_exposure": {e: len(v) for e, v in sorted(ratio.items())},
+        # an under-predicted gain at the quantile needs no margin (k ≥ 0: it enters squared)
+        "prediction_rel_unc": round(max(0.0, -float(np.quantile(err, quantile))), 3),
+        "gain_error_rel": {"quantile": quantile, "n": len(err), "mean": float(np.mean(err)), "sd": float(np.std(err))}}
+    if write_card is not None:
+        _write_calibration(Path(write_card), search.id, rep)
+        rep["written_to"] = str(Path(write_card) / "card.json")
+    return rep
+
+
+def _card_of(model_dir: Path, model_id: str) -> Path:
+    """The card in ``model_dir``; ValueError unless it is model set ``model_id``'s."""
+    card = model_dir / "card.json"
+    try:
+        found = json.loads(card.read_text()).get("id")
+    except (OSError, ValueError, AttributeError) as e:
+        raise ValueError(f"--write-card: cannot read the card {card}: {e}") from e
+    if found != model_id:
+        raise ValueError(f"--write-card: {card} is model set {found!r}, not {model_id!r}, the one calibrated")
+    return card
+
+
+def _write_calibration(model_dir: Path, model_id: str, rep: dict[str, Any]) -> None:
+    """The ``recommend`` block of the card in ``model_dir``, which must hold the model set ``model_id``."""
+    from ..judge.inference import update_card
+
+    _card_of(model_dir, model_id)
+    update_card(model_dir, recommend={
+        "exposure_u_scale": {str(e): f for e, f in rep["exposure_u_scale"].items()},
+        "prediction_rel_unc": rep["prediction_rel_unc"],
+        "calibrated_on": f"xmetro verify-recommend --calibrate on {rep['n_regions']} of the validation regions "
+                         "(seeds 8000 + i)",
+        "gain_error_rel": rep["gain_error_rel"]})
 
 
 def verify_regions(model_dir: Path | None = None, radius_mm: float = 4.0, n_regions: int = len(REGIONS),
@@ -192,6 +228,9 @@ def verify_regions(model_dir: Path | None = None, radius_mm: float = 4.0, n_regi
 
     scanner, model, pose, handler = _models(model_dir, pose_model_dir)
     search = pose if pose is not None else model
+    cal = recommend_calibration(search)
+    rel_unc = recommend_kw.get("prediction_rel_unc", FROM_MODEL)
+    rel_unc = cal.prediction_rel_unc if rel_unc == FROM_MODEL else rel_unc
     out: list[dict[str, Any]] = []
     um = 1e3
     for i, (art, st, direction) in enumerate(regions[:n_regions]):
@@ -211,8 +250,7 @@ def verify_regions(model_dir: Path | None = None, radius_mm: float = 4.0, n_regi
         def s(x: ScanSettings) -> list[float]:
             return [x.lateral_density, x.direction_density, x.exposure_ms]
 
-        gain, gain_unc = gain_and_uncertainty(rec.before, rec.top if rec.top is not None else rec.best,
-                                              recommend_kw.get("prediction_rel_unc", PREDICTION_REL_UNC))
+        gain, gain_unc = gain_and_uncertainty(rec.before, rec.top if rec.top is not None else rec.best, rel_unc)
         out.append({
             "artifact": art.to_dict(), "judged_settings": list(st), "centre_mm": c.round(3).tolist(),
             "radius_mm": radius_mm, "seed": seed0 + i, "note": rec.note, "kept_current": rec.kept_current,
@@ -250,7 +288,8 @@ def verify_regions(model_dir: Path | None = None, radius_mm: float = 4.0, n_regi
     return {"model": search.id, "judge_models": sorted({model.id, *([pose.id] if pose is not None else [])}),
             "region_set": region_set if isinstance(region_set, str) else "own",
             "rank_by": recommend_kw.get("rank_by", "score"),
-            "candidates_checked": "all (domain check off)" if against_all else "the search's", "regions": out,
+            "candidates_checked": "all (domain check off)" if against_all else "the search's",
+            "recommender_calibration": {"source": cal.source, "prediction_rel_unc": rel_unc}, "regions": out,
             "median": {"after_over_best": med("after_over_best"), "after_percentile": med("after_percentile"),
                        "rank_correlation": med("rank_correlation")}}
 
@@ -276,8 +315,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--effects", action="store_true",
                    help="trace before's and after's systematic p95 to the simulator's effects")
     p.add_argument("--calibrate", action="store_true",
-                   help="instead: the recommender's calibration from the validation regions "
-                        "(EXPOSURE_U_SCALE, PREDICTION_REL_UNC)")
+                   help="instead: calibrate the recommender on the validation regions")
+    p.add_argument("--write-card", type=Path, default=None, metavar="DIR",
+                   help="with --calibrate: write them into the card of the model set in DIR")
     p.add_argument("--against-all", action="store_true",
                    help="seek the actual best among all candidates, those outside the model's domain included")
     p.add_argument("--rank-by", choices=("score", "predicted"), default="score",
@@ -292,15 +332,19 @@ def run(args: argparse.Namespace) -> int:
     from ..judge.inference import ModelLoadError
 
     try:
+        if args.write_card is not None and not args.calibrate:
+            print("xmetro verify-recommend: --write-card needs --calibrate", file=sys.stderr)
+            return 2
         if args.calibrate:
             rep = calibrate(args.model, args.pose_model, args.radius,
-                            n_regions=max(1, min(args.regions, len(VALIDATION_REGIONS))), **kw)
+                            n_regions=max(1, min(args.regions, len(VALIDATION_REGIONS))), write_card=args.write_card,
+                            **kw)
         else:
             region_set = "validation" if args.validation else "held-out" if args.held_out else "test"
             rep = verify_regions(args.model, args.radius, max(1, min(args.regions, len(REGION_SETS[region_set][0]))),
                                  against_all=args.against_all, region_set=region_set,
                                  pose_model_dir=args.pose_model, effects=args.effects, **kw)
-    except ModelLoadError as e:  # a missing or unusable model set (e.g. a pose model for other features)
+    except (ModelLoadError, ValueError) as e:  # a missing or unusable model set, or --write-card's other model set
         print(f"xmetro verify-recommend: {e}", file=sys.stderr)
         return 2
     text = json.dumps(rep, indent=2)

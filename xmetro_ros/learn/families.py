@@ -125,6 +125,14 @@ PROFILES["default"] = dataclasses.replace(
     campaign={**PROFILES["full"].campaign, "poses": balanced_pose_order(), "pose_mode": "cycle"})
 
 
+# A candidate pose model (issue 29; not shipped): twice the scans (each configuration from two head orientations,
+# ``pose_cycles``) and a wider PointNet (64 / 128 / 64). docs/recommend-verified.md has what it does, seed by seed.
+PROFILES["default-large"] = dataclasses.replace(
+    PROFILES["default"], name="default-large",
+    compact={"block1": (64,), "block2": (128,), "head": (64,), "epochs": 100},
+    campaign={**PROFILES["default"].campaign, "pose_cycles": 2})
+
+
 def get_profile(name: str | Profile) -> Profile:
     """The training profile called ``name`` (a Profile is returned as is); KeyError naming the known ones."""
     if isinstance(name, Profile):

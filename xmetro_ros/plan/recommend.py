@@ -51,8 +51,10 @@ always evaluated first, and the note says when the search was cut short.
 
 Limits (honest): no occlusion by other parts of the workpiece unless its CAD is given (``occluder``), no
 reachability of the pose; the normals are those
-of the current scan; ``EXPOSURE_U_SCALE`` and ``PREDICTION_REL_UNC`` are the shipped pose model's (calibrate a model
-of one's own with ``xmetro verify-recommend --calibrate --model DIR``).
+of the current scan; ``EXPOSURE_U_SCALE`` and ``PREDICTION_REL_UNC`` are the shipped pose model's. A model set of
+one's own is calibrated with ``xmetro verify-recommend --calibrate --pose-model DIR --write-card DIR``: the figures go
+into its card's ``recommend`` block, which the search then uses instead (:func:`recommend_calibration`; the note
+says which calibration was used).
 """
 
 from __future__ import annotations
@@ -70,14 +72,17 @@ from ..scan.scanner import ScannerModel, ScanSettings
 
 __all__ = [
     "EXPOSURE_U_SCALE",
+    "FROM_MODEL",
     "PREDICTION_REL_UNC",
     "Candidate",
+    "RecommendCalibration",
     "RecommendCancelled",
     "RecommendProgress",
     "Recommendation",
     "coverage_mask",
     "gain_and_uncertainty",
     "recommend",
+    "recommend_calibration",
     "u_scale",
 ]
 
@@ -187,9 +192,40 @@ def p95_interval_halfwidth(values: np.ndarray) -> np.ndarray:
 
 
 # Calibrated on the validation regions (seeds 8000+) with the shipped pose model: see the module docstring and
-# ``xmetro verify-recommend --calibrate``.
+# ``xmetro verify-recommend --calibrate``. A model set whose card has a ``recommend`` block (``xmetro
+# verify-recommend --calibrate --write-card DIR``) uses its own figures instead (:func:`recommend_calibration`).
 EXPOSURE_U_SCALE: dict[float, float] = {0.1: 1.39, 0.5: 1.0, 2.0: 1.07}  # exposure (ms) → factor on U
 PREDICTION_REL_UNC = 0.10  # the model's error in predicting a candidate's p95 (gain), relative to that p95
+FROM_MODEL = "model"  # recommend()'s default for both: the searched model set's own calibration, else the above
+
+
+@dataclass(frozen=True)
+class RecommendCalibration:
+    """The recommender's calibration of one model set: the factor on U per exposure (ms → factor), the relative
+    uncertainty of a predicted p95 (the keep-current rule), and where they come from."""
+
+    exposure_u_scale: dict[float, float]
+    prediction_rel_unc: float
+    source: str
+
+
+def recommend_calibration(model_set: Any) -> RecommendCalibration:
+    """The calibration in ``model_set``'s card (its ``recommend`` block, written by ``xmetro verify-recommend
+    --calibrate --write-card``), else the shipped pose model's (:data:`EXPOSURE_U_SCALE`,
+    :data:`PREDICTION_REL_UNC`). Raises ValueError for a malformed block (a card is a user's file)."""
+    block = (getattr(model_set, "card", None) or {}).get("recommend")
+    if not block:
+        return RecommendCalibration(dict(EXPOSURE_U_SCALE), PREDICTION_REL_UNC, "the shipped pose model's")
+    try:
+        table = {float(e): float(f) for e, f in dict(block["exposure_u_scale"]).items()}
+        k = float(block["prediction_rel_unc"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"the model card's 'recommend' block is malformed: {type(e).__name__}: {e}") from e
+    if not (math.isfinite(k) and k >= 0) or not all(math.isfinite(e) and e > 0 and math.isfinite(f) and f > 0
+                                                    for e, f in table.items()):
+        raise ValueError("the model card's 'recommend' block needs prediction_rel_unc >= 0 and positive finite "
+                         f"exposures and factors, got {block!r}")
+    return RecommendCalibration(table, k, "the model card's")
 
 
 def u_scale(exposure_ms: float, table: dict[float, float] | None) -> float:
@@ -285,8 +321,8 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
               max_seconds: float | None = None, uncertainty: UncertaintyFn | None = None,
               in_domain: Callable[[np.ndarray], np.ndarray] | bool | None = None, max_out_of_domain: float = 0.05,
               keep_current: bool = True, rank_by: str = "score",
-              exposure_u_scale: dict[float, float] | None = EXPOSURE_U_SCALE,
-              prediction_rel_unc: float = PREDICTION_REL_UNC,
+              exposure_u_scale: dict[float, float] | str | None = FROM_MODEL,
+              prediction_rel_unc: float | str = FROM_MODEL,
               progress: Callable[[RecommendProgress], None] | None = None,
               cancelled: Callable[[], bool] | None = None, occluder: Any = None) -> Recommendation:
     """Search settings × orientations for the region ``rows`` of a judged scan (see the module docstring).
@@ -311,8 +347,10 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
         max_out_of_domain: candidates with a larger share of covered points outside the domain are discarded.
         keep_current: recommend the current set-up unless the best predicted gain exceeds its uncertainty.
         exposure_u_scale: exposure (ms) → factor on U (:func:`u_scale`), the random part's calibrated size at each
-            candidate's exposure; None or {} → U as the model gives it.
-        prediction_rel_unc: the model's relative error in predicting a candidate's p95 (the keep-current rule).
+            candidate's exposure; None or {} → U as the model gives it; ``"model"`` (default) → the model set's
+            own calibration (:func:`recommend_calibration`).
+        prediction_rel_unc: the model's relative error in predicting a candidate's p95 (the keep-current rule);
+            ``"model"`` (default) → the model set's own calibration.
         rank_by: ``"score"`` (default): the p95 of |d| + |U| (``Candidate.score_mm``); ``"predicted"``: the p95 of
             the predicted distribution of |d + r| (``Candidate.predicted_p95_mm``; the score when the model gives
             no U). The keep-current rule compares that figure under either ranking.
@@ -330,6 +368,14 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
 
     if rank_by not in RANK_BY:
         raise ValueError(f"rank_by must be one of {', '.join(RANK_BY)}, got {rank_by!r}")
+    cal_source = ""
+    if FROM_MODEL in (exposure_u_scale, prediction_rel_unc):
+        cal = recommend_calibration(model_set)
+        cal_source = cal.source
+        exposure_u_scale = cal.exposure_u_scale if exposure_u_scale == FROM_MODEL else exposure_u_scale
+        prediction_rel_unc = cal.prediction_rel_unc if prediction_rel_unc == FROM_MODEL else prediction_rel_unc
+    if isinstance(exposure_u_scale, str) or isinstance(prediction_rel_unc, str):
+        raise ValueError(f"exposure_u_scale and prediction_rel_unc take values or {FROM_MODEL!r}")
 
     def key(c: Candidate) -> tuple[float, float]:
         v = c.predicted_p95_mm if rank_by == "predicted" and c.predicted_p95_mm is not None else c.score_mm
@@ -469,6 +515,8 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
                  "model's domain")
     if uses_u and exposure_u_scale:
         note += "; U at each exposure scaled to the random part's calibrated size"
+    if cal_source:
+        note += f"; recommender calibration: {cal_source}"
     top = ranked[0]
     best, kept = top, False
     if keep_current:

@@ -124,6 +124,7 @@ def study_campaign(
     artifacts: list[Artifact] | None = None,
     poses: list[np.ndarray] | None = None,
     pose_mode: str = "cycle",
+    pose_cycles: int = 1,
 ) -> list[CampaignItem]:
     """Items of the study campaign: each artifact (spheres of ``sphere_diameters`` mm centred at the origin, then
     a cylinder of radius 20 mm with its axis along Y, then optionally the z = 0 plane) x each configuration
@@ -132,7 +133,9 @@ def study_campaign(
     ``poses``: head-frame rotations (e.g. ``pose_grid()``) applied with ``campaign_pose``; None → looking down
     (the items and seeds of earlier versions). ``pose_mode`` "cycle": item k of an artifact takes pose
     (k + artifact index) mod P (the campaign keeps its size, every pose and every configuration is scanned);
-    "all": each artifact x pose x configuration.
+    with ``pose_cycles`` n > 1 each configuration is scanned from n poses, (k + artifact index + j P // n) mod P
+    for j < n (n times the scans; n = 1 is the campaign of earlier versions, item for item); "all": each
+    artifact x pose x configuration.
 
     Raises ValueError for a non-positive diameter or a bad pose mode, UnknownEffectError / EffectConfigError for
     bad effects (checked up front, not at the first simulate())."""
@@ -153,6 +156,8 @@ def study_campaign(
         scanner.validate_settings(c)
     if pose_mode not in ("cycle", "all"):
         raise ValueError(f"pose_mode must be 'cycle' or 'all', got {pose_mode!r}")
+    if not (isinstance(pose_cycles, int) and pose_cycles >= 1) or (poses is not None and pose_cycles > len(poses)):
+        raise ValueError(f"pose_cycles must be an integer from 1 to the number of poses, got {pose_cycles!r}")
     items: list[CampaignItem] = []
     for ai, a in enumerate(artifacts):
         starts: list[HeadPose | None] = [None] if poses is None else [campaign_pose(a, r, scanner) for r in poses]
@@ -160,7 +165,8 @@ def study_campaign(
         if poses is None:
             plan = [(None, ci) for ci in range(len(configs))]
         elif pose_mode == "cycle":
-            plan = [((ci + ai) % len(starts), ci) for ci in range(len(configs))]
+            step = len(starts) // pose_cycles
+            plan = [((ci + ai + j * step) % len(starts), ci) for j in range(pose_cycles) for ci in range(len(configs))]
         else:
             plan = [(pi, ci) for pi in range(len(starts)) for ci in range(len(configs))]
         for pi, ci in plan:
