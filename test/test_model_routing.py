@@ -15,6 +15,7 @@ import pytest
 from xmetro_ros.judge import flags as fl
 from xmetro_ros.judge.inference import ModelSet
 from xmetro_ros.judge.scan_handler import ROUTE_MAX_OUT_OF_DOMAIN, HandlerParams, ScanHandler
+from xmetro_ros.plan.recommend import RecommendCalibration, recommend_calibration
 from xmetro_ros.scan.artifacts import Sphere
 from xmetro_ros.scan.geometry import HeadPose, rotation_xyz
 from xmetro_ros.scan.resources import default_model_dir, pose_model_dir
@@ -120,6 +121,17 @@ def test_core_loads_the_pose_model_only_where_it_belongs(tmp_path):
     (odd / "card.json").write_text(json.dumps(card))
     c3 = XmetroCore({**base, "pose_model_dir": str(odd)})
     assert c3.model is not None and c3.pose_model is None and "not the primary model's" in c3.pose_model_error
+    # its card's recommender calibration: a malformed one is refused at start, a valid one is the search's
+    cal = tmp_path / "cal"
+    shutil.copytree(pose_model_dir(), cal)
+    card = json.loads((cal / "card.json").read_text())
+    (cal / "card.json").write_text(json.dumps({**card, "recommend": {"prediction_rel_unc": 0.2}}))
+    c4 = XmetroCore({**base, "pose_model_dir": str(cal)})
+    assert c4.pose_model is None and "'recommend' block" in c4.pose_model_error
+    (cal / "card.json").write_text(json.dumps({**card, "recommend": {"prediction_rel_unc": 0.2,
+                                                                     "exposure_u_scale": {"0.5": 1.0}}}))
+    c5 = XmetroCore({**base, "pose_model_dir": str(cal)})
+    assert recommend_calibration(c5.search_model) == RecommendCalibration({0.5: 1.0}, 0.2, "the model card's")
 
 
 def test_diagnostics_say_which_models_judge():

@@ -132,9 +132,10 @@ class XmetroCore:
     def _load_pose_model(self) -> tuple[Any, str]:
         """(the second model set or None, why there is none when one was asked for), chosen by
         ``resources.pose_model_path`` from ``model_dir`` and ``pose_model_dir``. It must take the primary's features
-        and be trained for the same scanner; a failure leaves the node judging with the primary alone (logged, on
-        /diagnostics)."""
+        and be trained for the same scanner, and its card's recommender calibration, if any, must be well formed; a
+        failure leaves the node judging with the primary alone (logged, on /diagnostics)."""
         from ..judge.inference import load_pose_model
+        from ..plan.recommend import recommend_calibration
         from ..scan.resources import pose_model_path
 
         v = self.values
@@ -143,7 +144,9 @@ class XmetroCore:
         if self.model is None or where is None:
             return None, ""
         try:
-            return load_pose_model(where, self.model, threads=onnx_threads(v)), ""
+            pm = load_pose_model(where, self.model, threads=onnx_threads(v))
+            recommend_calibration(pm)  # a malformed recommender calibration: refused now, not at the first search
+            return pm, ""
         except Exception as e:
             msg = f"pose model set unavailable ({path or 'shipped'}): {e}; judging with {self.model.id!r} alone"
             if self.log is not None:
