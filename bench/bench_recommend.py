@@ -12,6 +12,8 @@ shared machine, load average recorded), best of 3 each:
 - a profile of ``default``: the time in geometry (``with_pose``), features, the model
   (``predict_batch_with_uncertainty``: d and U of all settings versions of an orientation in one ONNX run), scores
   and the domain check.
+- ``ensemble``: ``default`` with the shipped search ensemble (the node's search since 0.8.6: three pose models,
+  each searching the grid; ``plan.ensemble_search``), no target of its own: its cost next to one model's.
 Writes bench/results/recommend.json. Target: ``default`` and ``with_u`` ≤ 3 s.
 """
 
@@ -39,7 +41,8 @@ N_REGION = 20_000
 
 
 def main() -> None:
-    from xmetro_ros.scan.resources import pose_model_path
+    from xmetro_ros.plan.ensemble_search import load_search_ensemble, search
+    from xmetro_ros.scan.resources import pose_model_path, search_models_path
 
     scanner = ScannerModel.load()
     custom = os.environ.get("XMETRO_TEST_MODEL_DIR")
@@ -66,11 +69,18 @@ def main() -> None:
         "with_u": {"uncertainty": u_synth},
         "full_region": {"max_points": N_REGION, "max_seconds": 3.0},
     }
+    # the node's default search since 0.8.6: the shipped search ensemble (three wider pose models), side by side
+    ens_path = search_models_path(custom, None, None)
+    ens = None if ens_path is None else load_search_ensemble(ens_path, judge)
+    if ens is not None:
+        out["ensemble_model"] = ens.id
+        runs["ensemble"] = {}
     for name, kw in runs.items():
         ts, rec = [], None
+        searched = ens if name == "ensemble" else model
         for _ in range(3):
             t0 = time.perf_counter()
-            rec = recommend(model, res.context, rows, res.features, scan.pose, scanner, scan.settings, **kw)
+            rec = search(searched, res.context, rows, res.features, scan.pose, scanner, scan.settings, **kw)
             ts.append(time.perf_counter() - t0)
         out[name] = {"s": round(min(ts), 3), "all_s": [round(t, 3) for t in ts], "points": rec.n_points,
                      "orientations": rec.n_orientations, "orientations_evaluated": rec.n_orientations_evaluated,

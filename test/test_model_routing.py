@@ -105,13 +105,20 @@ def test_core_loads_the_pose_model_only_where_it_belongs(tmp_path):
 
     base = {p.name: p.default for p in PARAMS}
     core = XmetroCore(base)
-    assert core.pose_model is not None and core.search_model is core.pose_model and not core.pose_model_error
+    assert core.pose_model is not None and not core.pose_model_error and not core.search_ensemble_error
+    # the shipped search ensemble searches next to the shipped models; 'none': the pose model does
+    assert core.search_model is core.search_ensemble and len(core.search_ensemble.members) == 3
+    no_ens = XmetroCore({**base, "search_models_dir": "none"})
+    assert no_ens.search_ensemble is None and no_ens.search_model is no_ens.pose_model
     assert XmetroCore({**base, "pose_model_dir": "none"}).pose_model is None
+    # a search ensemble that cannot load: said, and the search falls back to the pose model
+    bad = XmetroCore({**base, "search_models_dir": str(tmp_path / "missing")})
+    assert bad.search_model is bad.pose_model and "search ensemble unavailable" in bad.search_ensemble_error
     # a model_dir of one's own (a calibrated scanner) gets no shipped pose model unless asked for
     own = tmp_path / "own"
     shutil.copytree(default_model_dir(), own)
     c2 = XmetroCore({**base, "model_dir": str(own)})
-    assert c2.pose_model is None and c2.search_model is c2.model
+    assert c2.pose_model is None and c2.search_ensemble is None and c2.search_model is c2.model
     # a pose model for other features is refused, and the node judges with the primary alone, saying why
     odd = tmp_path / "odd"
     shutil.copytree(pose_model_dir(), odd)
@@ -131,6 +138,7 @@ def test_core_loads_the_pose_model_only_where_it_belongs(tmp_path):
     (cal / "card.json").write_text(json.dumps({**card, "recommend": {"prediction_rel_unc": 0.2,
                                                                      "exposure_u_scale": {"0.5": 1.0}}}))
     c5 = XmetroCore({**base, "pose_model_dir": str(cal)})
+    assert c5.search_ensemble is None  # a pose model of one's own is searched with as it is
     assert recommend_calibration(c5.search_model) == RecommendCalibration({0.5: 1.0}, 0.2, "the model card's")
 
 

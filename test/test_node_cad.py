@@ -161,7 +161,7 @@ def test_recommend_counts_the_parts_self_occlusion(step, monkeypatch) -> None:
     occluder; for a region of the floor just in front of the step's rising wall, the coverage the search then gives
     each orientation is the re-simulated one (the virtual scanner rescans the part at that orientation: which of the
     region's points come back), where the angle-only coverage of a node without CAD claims points the wall hides."""
-    import xmetro_ros.plan.recommend as rec_mod
+    import xmetro_ros.plan.ensemble_search as rec_mod  # the node's search calls recommend from here (each member)
     from xmetro_ros.plan.recommend import coverage_mask
     from xmetro_ros.plan.resim import GroundTruth, Region, resimulate
     from xmetro_ros.ros.convert import ns_to_stamp

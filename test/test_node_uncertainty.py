@@ -203,7 +203,8 @@ def test_scan_at_a_searched_orientation_is_judged_by_the_pose_model(rig):
     """A rescan at one of the recommender's orientations (15° tilt, 90° turn about the region) lies outside the
     primary model's domain and inside the shipped pose model's: ScanQuality names the pose model, the published
     deviations and U are its own judgement of the scan (ScanHandler with that model alone), ~/explain explains them
-    with it, and ~/recommend_settings searches with it. A looking-down scan stays with the primary."""
+    with it, and ~/recommend_settings searches with the shipped search ensemble. A looking-down scan stays with the
+    primary."""
     from xmetro_ros.judge.inference import ModelSet
     from xmetro_ros.judge.scan_handler import HandlerParams, ScanHandler
     from xmetro_ros.scan.geometry import rotation_xyz
@@ -252,7 +253,8 @@ def test_scan_at_a_searched_orientation_is_judged_by_the_pose_model(rig):
     rreq.region_radius = 0.004
     rr = call_service(rec, rreq, timeout=120.0)
     assert rr.success, rr.message
-    assert rr.model_id == pose_model.id
+    # the search: the shipped search ensemble, next to the shipped primary and pose model
+    assert rr.model_id == node.core.search_ensemble.id and rr.model_id.startswith("ensemble:")
 
 
 def test_explain_uncertainty_additive_and_equal_to_published_U(rig):

@@ -54,7 +54,8 @@ def test_wheel_carries_interfaces_libraries_config_and_model(tmp_path: Path):
     for must in ("xmetro_ros/msg/_scan_quality.py", "xmetro_ros/msg/_reference_check.py",
                  "xmetro_ros/msg/_scanner_settings.py", "xmetro_ros/srv/_explain.py",
                  "xmetro_ros/srv/_recommend_settings.py", "xmetro_ros/models/default/card.json",
-                 "xmetro_ros/models/posed/card.json", "xmetro_ros/config/xmetro.yaml",
+                 "xmetro_ros/models/posed/card.json", "xmetro_ros/models/search/s2/card.json",
+                 "xmetro_ros/config/xmetro.yaml",
                  "xmetro_ros/config/fastdds_localhost.xml", "xmetro_ros/config/foxglove/xmetro_layout.json",
                  "xmetro_ros/config/rviz/xmetro.rviz",
                  f"{data}/data/share/ament_index/resource_index/packages/xmetro_ros",
@@ -177,7 +178,8 @@ def test_colcon_install_finds_config_and_model_and_starts_renamed_node(tmp_path:
     site = prefix / "lib" / f"python{sys.version_info.major}.{sys.version_info.minor}" / "site-packages"
     for rel in ("config/xmetro.yaml", "config/scanners/default.yaml", "config/fastdds_localhost.xml",
                 "config/foxglove/xmetro_layout.json", "config/rviz/xmetro.rviz",
-                "models/default/card.json", "models/posed/card.json", "launch/xmetro.launch.py", "package.xml"):
+                "models/default/card.json", "models/posed/card.json", "models/search/s2/card.json",
+                "launch/xmetro.launch.py", "package.xml"):
         assert (share / rel).is_file(), rel
     assert (prefix / "share" / "ament_index" / "resource_index" / "packages" / "xmetro_ros").is_file()
     assert (prefix / "lib" / "xmetro_ros" / "xmetro_node").is_file()

@@ -137,11 +137,12 @@ def test_the_searched_model_sets_own_calibration():
 
 def test_no_followed_recommendation_makes_a_region_worse():
     """Issue 29's acceptance on the shipped model sets as the node runs them (``plan.resim.verify`` exactly as
-    ``xmetro verify-recommend``: the primary or the pose model judges by routing, the pose model searches), over
-    the held-out regions (``verify_recommend.HELD_OUT_REGIONS``): no region worse than staying beyond the
-    re-simulation noise (3 × the spread of the difference: hypot of the before and after p95 spreads over the 3
-    evaluation seeds; the convention of test_verify_recommend's acceptance), median after / best ≤ 1.1; the issue's
-    case (region 1: a 45 mm sphere at 10/4/0.5, a predicted gain inside its uncertainty) keeps the current set-up."""
+    ``xmetro verify-recommend``: the primary or the pose model judges by routing, the shipped search ensemble
+    searches), over the held-out regions (``verify_recommend.HELD_OUT_REGIONS``): no region worse than staying
+    beyond the re-simulation's own spread (hypot of the before and after p95 spreads over the 3 evaluation seeds),
+    median after / best ≤ 1.1; the issue's case (region 1: a 45 mm sphere at 10/4/0.5, a predicted gain inside its
+    uncertainty) and region 2 (the single pose model's miss: a 35 mm sphere at 6/5/0.5, told to turn) keep the
+    current set-up."""
     from xmetro_ros.apps.verify_recommend import HELD_OUT_REGIONS, verify_regions
 
     rep = verify_regions(None, region_set="held-out")
@@ -156,11 +157,84 @@ def test_no_followed_recommendation_makes_a_region_worse():
               f"after/best {r['after_over_best']:.3f}")
     for r in R:
         a = r["actual_p95_um"]
-        assert a["after"] - a["before"] <= 3 * max(np.hypot(a["before_spread"], a["after_spread"]), 0.1), r
+        assert a["after"] - a["before"] <= max(np.hypot(a["before_spread"], a["after_spread"]), 0.1), r
         if r["kept_current"]:
             assert a["after"] == a["before"] and "keep the current set-up" in r["note"]
         else:
             assert r["predicted_gain_um"]["gain"] > r["predicted_gain_um"]["uncertainty"]
     ratios = np.array([r["after_over_best"] for r in R])
     assert np.median(ratios) <= 1.1, ratios
-    assert R[1]["kept_current"]
+    assert R[1]["kept_current"] and R[2]["kept_current"]
+    assert rep["model"].startswith("ensemble:")
+
+
+class Sloped(Tilted):
+    """``Tilted`` with its growth with tilt scaled by ``slope`` (0: the same error at every orientation)."""
+
+    def __init__(self, u, slope: float, name: str):
+        super().__init__(u)
+        self.slope, self.id = slope, name
+
+    def predict(self, X):
+        d = super().predict(X)
+        d[:, 2] = 0.001 + self.slope * (d[:, 2] - 0.001)
+        return d
+
+
+def test_search_ensemble_ranks_on_the_mean_and_keeps_on_disagreement():
+    """Members that agree give the single model's answer; members that disagree on the gain keep the current
+    set-up where one of them alone would have advised a change (``plan.ensemble_search``)."""
+    from xmetro_ros.plan.ensemble_search import SearchEnsemble, ensemble_gain, search
+
+    scanner = ScannerModel.load()
+    judged = simulate_scan(Sphere(22.5), ScanSettings(6.0, 3.0, 0.5), scanner=scanner, seed=6)
+    ctx = _context(judged, scanner)
+    c0 = np.array([9.0, 0.0, np.sqrt(22.5**2 - 81)])
+    rows = np.flatnonzero(np.linalg.norm(np.asarray(ctx.points) - c0, axis=1) < 4)
+    u = lambda X: np.full((len(X), 3), 0.002)  # noqa: E731
+    a, a2, flat = Sloped(u, 1.0, "a"), Sloped(u, 1.0, "a2"), Sloped(u, 0.0, "flat")
+    feats = compute_features(list(a.feature_names), ctx)
+    kw = dict(max_points=300, tilt_steps=3, turn_steps=1, in_domain=False, prediction_rel_unc=0.0)
+    rest = (ctx, rows, feats, judged.pose, scanner, judged.settings)
+    single = recommend(a, *rest, **kw)
+    agree = search(SearchEnsemble([a, a2]), *rest, **kw)
+    assert search(a, *rest, **kw).gain == single.gain  # one model set: recommend itself
+    assert not single.kept_current and not agree.kept_current
+    assert [c.settings for c in agree.ranked] == [c.settings for c in single.ranked]
+    assert [c.score_mm for c in agree.ranked] == pytest.approx([c.score_mm for c in single.ranked], rel=1e-9)
+    assert agree.gain == pytest.approx(single.gain, rel=1e-9) and agree.best.settings == single.best.settings
+    assert "search ensemble of 2 pose models (a, a2)" in agree.note
+    # one member sees the gain, the other none: their spread keeps the current set-up
+    split = search(SearchEnsemble([a, flat]), *rest, **kw)
+    g_a = single.before.reported_p95_mm - single.top.reported_p95_mm
+    assert split.kept_current and "keep the current set-up" in split.note and "theirs and their spread" in split.note
+    assert split.best.settings == judged.settings and np.allclose(split.best.rotation, np.eye(3))
+    gain, unc = split.gain
+    assert 0 < gain < g_a and unc > gain
+    # the rule itself: mean gain against the members' own uncertainties and their spread (M - 1)
+    assert ensemble_gain(np.array([5.0, 5.0, 5.0]), np.array([1.0, 1.0, 1.0])) == pytest.approx((5.0, 1.0))
+    g, s = ensemble_gain(np.array([4.75, 1.82, 0.3]), np.array([1.1, 3.5, 5.3]))
+    assert g == pytest.approx(2.29) and s == pytest.approx(np.sqrt((1.1**2 + 3.5**2 + 5.3**2) / 3 + 5.1163), rel=1e-3)
+    assert s > g  # issue 29's held-out miss, one member's confident gain: kept
+    assert ensemble_gain(np.array([np.inf, 3.0]), np.array([1.0, 1.0]))[0] == np.inf
+    with pytest.raises(ValueError, match="at least 2"):
+        SearchEnsemble([a])
+
+
+def test_shipped_search_ensemble_loads():
+    """The shipped search ensemble: three pose model sets taking the primary's features, each with its own
+    recommender calibration; a directory without one is refused."""
+    from xmetro_ros.judge.inference import ModelSet
+    from xmetro_ros.plan.ensemble_search import load_search_ensemble
+    from xmetro_ros.scan.resources import search_models_dir, search_models_path
+
+    primary = ModelSet.load(None)
+    ens = load_search_ensemble(search_models_dir(), primary)
+    assert len(ens.members) == 3 and len({m.id for m in ens.members}) == 3
+    assert all(recommend_calibration(m).source != "the shipped pose model's" for m in ens.members)
+    assert ens.id.startswith("ensemble:") and ens.feature_names == list(primary.feature_names)
+    assert search_models_path(None, None, None) == search_models_dir()
+    assert search_models_path("mine", None, None) is None and search_models_path(None, "mine", "") is None
+    assert search_models_path(None, None, "none") is None
+    with pytest.raises(ValueError, match="at least 2"):
+        load_search_ensemble(search_models_dir() / "s2", primary)

@@ -12,14 +12,16 @@ from xmetro_ros.apps import cli
 from xmetro_ros.apps.verify_recommend import (
     HELD_OUT_REGIONS,
     REGIONS,
+    SELECTION_REGIONS,
     VALIDATION_REGIONS,
+    drawn_regions,
     region_centre,
     verify_regions,
 )
 
 
 def test_region_centres_lie_on_the_artifacts():
-    for regions in (REGIONS, VALIDATION_REGIONS):
+    for regions in (REGIONS, VALIDATION_REGIONS, SELECTION_REGIONS, drawn_regions(11000)):
         assert len(regions) >= 8 and {type(a).__name__ for a, _, _ in regions} == {"Sphere", "Cylinder"}
         for art, _, d in regions:
             c = region_centre(art, d)
@@ -40,6 +42,14 @@ def test_region_centres_lie_on_the_artifacts():
     assert not places(REGIONS) & places(VALIDATION_REGIONS)
     held = setups(HELD_OUT_REGIONS)
     assert len(held) == len(HELD_OUT_REGIONS) and not held & (setups(REGIONS) | setups(VALIDATION_REGIONS))
+    # drawn sets (the selection set: seed 10000): the held-out kind, reproducible, and none of the sets above
+    assert drawn_regions(10000) == SELECTION_REGIONS and len(SELECTION_REGIONS) == 12
+    assert [st[2] for _, st, _ in SELECTION_REGIONS] == [0.5] * 9 + [0.1, 2.0, 0.1]
+    for seed in (10000, 11000):
+        drawn = places(drawn_regions(seed))
+        assert len(drawn) == 12 and not drawn & (places(REGIONS) | places(VALIDATION_REGIONS)
+                                                  | places(HELD_OUT_REGIONS))
+        assert all(d[2] >= np.cos(np.radians(45)) - 1e-3 for _, _, d in drawn_regions(seed))
 
 
 @pytest.fixture(scope="module")
@@ -64,16 +74,20 @@ def test_verify_recommend_cli(quick_report):
     assert "noise is ignored" in r["note"] or "|d| + |U|" in r["note"]
     assert 5.0 < a["before"] < 200.0 and r["coverage_after"] > 0.5
     assert rep["median"]["after_over_best"] == pytest.approx(r["after_over_best"])
-    # the shipped pose model's card has no calibration of its own: the module's figures, said in the note
-    assert rep["recommender_calibration"] == {"source": "the shipped pose model's", "prediction_rel_unc": 0.10}
-    assert "recommender calibration: the shipped pose model's" in r["note"]
+    # the search: the shipped ensemble, each member with the calibration in its own card, said in the note
+    cals = rep["recommender_calibration"]
+    assert len(cals) == 3 and all(c["source"] == "the model card's" and c["prediction_rel_unc"] > 0 for c in cals)
+    assert rep["model"] == "ensemble:" + "+".join(c["model"] for c in cals)
+    assert "search ensemble of 3 pose models" in r["note"] and "recommender calibration: the model card's" in r["note"]
     # --effects: before's and after's systematic p95 with each effect switched off, next to the predicted one
     for k in ("before", "after"):
         e = r["systematic_p95_um"][k]
         assert e["predicted"] > 0 and {"all", "standoff", "centroid", "motion_blur"} <= set(e["actual_without"])
         assert all(np.isfinite(v) and v >= 0 for v in e["actual_without"].values())
-        # speckle is random only: the systematic part without it is the same; the stand-off bias is systematic
-        assert e["actual_without"]["speckle"] == pytest.approx(e["actual_without"]["all"], rel=1e-9)
+        # speckle is random only: the systematic part without it is the same but for the few points its noise moves
+        # into or out of the region (the p95 is taken over the re-simulated points in it); the stand-off bias is
+        # systematic
+        assert e["actual_without"]["speckle"] == pytest.approx(e["actual_without"]["all"], rel=3e-4)
         assert e["actual_without"]["standoff"] != pytest.approx(e["actual_without"]["all"], rel=1e-3)
 
 
@@ -116,16 +130,13 @@ def test_verify_recommend_against_all_candidates(tmp_path, quick_report):
 
 def test_shipped_model_recommendations_hold_when_followed():
     """Issue 15's acceptance on the shipped model sets as the node runs them (scans judged by the primary or the pose
-    model, the search with the pose model), re-simulated over the nine test regions (seeds 7000-7008, never used in
-    training or in choosing the pose model's seed, which the validation regions did): following the recommendation
+    model, the search with the shipped search ensemble), re-simulated over the nine test regions (seeds 7000-7008,
+    never used in training or in choosing a model, which the validation regions did): following the recommendation
     never makes the actual p95 worse beyond the re-simulation noise; after / best actual ≤ 1.25 in every region,
     median ≤ 1.1; the predicted p95 after within ±30 % of the actual; rank correlation of predicted and actual p95
     over the candidates ≥ 0.7 (median)."""
-    from xmetro_ros.judge.inference import ModelSet
-    from xmetro_ros.scan.resources import pose_model_dir
-
     rep = verify_regions(None)
-    assert rep["model"] == ModelSet.load(pose_model_dir()).id and len(rep["judge_models"]) == 2
+    assert rep["model"].startswith("ensemble:") and len(rep["judge_models"]) == 2
     R = rep["regions"]
     assert len(R) == 9
     for r in R:

@@ -62,13 +62,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--profile", choices=sorted(PROFILES), default="quick",
                    help="run profile of the training (quick: minutes; full: the study's protocol)")
     p.add_argument("--families", default=",".join(DEFAULT_FAMILIES),
-                   help="comma-separated model families (default: the node's pointnet_multi, which has a spread "
-                   "head; catboost gets a constant σ̂)")
+                   help="comma-separated model families (catboost gets a constant σ̂)")
     p.add_argument("--seed", type=int, default=0, help="seed of the scan split and the fits (default 0)")
     p.add_argument("--max-points", type=int, default=2000, help="points sampled per measurement")
     p.add_argument("--prior", default=None, metavar="MODEL_DIR|default",
-                   help="warm-start the pointnet_multi network from this model set (a virtual scanner's, or "
-                   "'default': the packaged one) and fine-tune it on the campaign; its layout must be --profile's")
+                   help="fine-tune the pointnet_multi network of this model set ('default': the packaged one) on the "
+                   "campaign; its layout must be --profile's")
     p.add_argument("--iterations", type=int, default=1000,
                    help="profile campaigns (format xmetro-profile-campaign/1) only: CatBoost iterations of d")
     p.add_argument("--no-uncertainty", action="store_true",

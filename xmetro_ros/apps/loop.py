@@ -22,8 +22,7 @@ def register(subparsers) -> None:
     p.add_argument("--model", default=None, help="model dir (ModelSet); default: retrain CatBoost on the input")
     p.add_argument("--candidates", default=None, help="comma-separated candidate names (default: all)")
     p.add_argument("--correction", default="auto", choices=["auto", "feature", "offset"],
-                   help="auto: identities become per-identity offsets, other variables features; feature / offset: "
-                   "only that kind (default auto)")
+                   help="auto: identities become per-identity offsets, other variables features; else only that kind")
     p.add_argument("--max-iter", type=int, default=3, help="at most this many effects added (default 3)")
     p.add_argument("--n-perm", type=int, default=199, help="permutations of each candidate's null (default 199)")
     p.add_argument("--alpha", type=float, default=0.01, help="family-wise level of the Holm-corrected tests "

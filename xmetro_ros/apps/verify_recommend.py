@@ -74,7 +74,32 @@ HELD_OUT_REGIONS: list[tuple[Artifact, tuple[float, float, float], tuple[float, 
     (Sphere(27.5), (6.0, 3.0, 2.0), (-0.555, -0.358, 0.751)),
     (Cylinder(20.0), (10.0, 3.0, 0.1), (-0.513, -0.477, 0.714)),
 ]
-REGION_SETS = {"test": (REGIONS, 7000), "validation": (VALIDATION_REGIONS, 8000), "held-out": (HELD_OUT_REGIONS, 9000)}
+def drawn_regions(seed: int, n: int = 12) -> list[tuple[Artifact, tuple[float, float, float],
+                                                    tuple[float, float, float]]]:
+    """``n`` regions of the held-out kind drawn anew from ``numpy.random.default_rng(seed)`` (judged with seeds
+    ``seed`` + i): the four artifacts in turn, a direction within 45° of the top (uniform on the cap; on the
+    cylinder its y part dropped), densities at random; the judged exposure 0.5 ms (a set-up near its best) but for
+    the last three, 0.1, 2 and 0.1 ms. Directions rounded to 3 decimals."""
+    rng = np.random.default_rng(seed)
+    arts: list[Artifact] = [Sphere(17.5), Sphere(22.5), Sphere(27.5), Cylinder(20.0)]
+    out: list[tuple[Artifact, tuple[float, float, float], tuple[float, float, float]]] = []
+    for i in range(n):
+        art = arts[i % 4]
+        exposure = 0.5 if i < n - 3 else (0.1, 2.0, 0.1)[i - (n - 3)]
+        th, ph = np.arccos(rng.uniform(np.cos(np.radians(45.0)), 1.0)), rng.uniform(0.0, 2 * np.pi)
+        d = np.array([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)])
+        if isinstance(art, Cylinder):
+            d = np.array([d[0], 0.0, d[2]]) / np.hypot(d[0], d[2])
+        st = (float(rng.choice([6.0, 10.0, 15.0])), float(rng.choice([3.0, 4.0, 5.0])), exposure)
+        out.append((art, st, (round(float(d[0]), 3) + 0.0, round(float(d[1]), 3) + 0.0, round(float(d[2]), 3) + 0.0)))
+    return out
+
+
+# Selection regions (seeds 10000 + i), for choosing among trained pose models with neither the validation regions
+# (which did not see issue 29's miss) nor the held-out ones (the acceptance's check). Other draws: ``--drawn SEED``.
+SELECTION_REGIONS = drawn_regions(10000)
+REGION_SETS = {"test": (REGIONS, 7000), "validation": (VALIDATION_REGIONS, 8000), "held-out": (HELD_OUT_REGIONS, 9000),
+               "selection": (SELECTION_REGIONS, 10000)}
 
 
 def region_centre(art: Artifact, direction: tuple[float, float, float]) -> np.ndarray:
@@ -208,7 +233,7 @@ def verify_regions(model_dir: Path | None = None, radius_mm: float = 4.0, n_regi
                    candidate_seeds: int = 1, n_seeds: int = 3, finalists: int = 5, against_all: bool = False,
                    region_set: str | list[tuple[Artifact, tuple[float, float, float], tuple[float, float, float]]]
                    = "test", pose_model_dir: Path | str | None = None, seed: int = 9000, effects: bool = False,
-                   **recommend_kw: Any) -> dict[str, Any]:
+                   search_models_dir: Path | str | None = None, **recommend_kw: Any) -> dict[str, Any]:
     """Run the check over the first ``n_regions`` regions; returns the JSON-serialisable report.
 
     Models as in the node: ``model_dir`` (None: the shipped default) judges the scan, unless the pose model
@@ -219,27 +244,36 @@ def verify_regions(model_dir: Path | None = None, radius_mm: float = 4.0, n_regi
     discards included (a second search with ``max_out_of_domain`` 1 lists them); the recommendation is still the
     search's own, with the domain check. It measures what the domain check costs a model not trained there.
     ``region_set``: ``"test"`` (``REGIONS``, seeds 7000 + i), ``"validation"`` (``VALIDATION_REGIONS``, 8000 + i),
-    ``"held-out"`` (``HELD_OUT_REGIONS``, 9000 + i), or a list of regions of one's own (seeds ``seed`` + i).
+    ``"held-out"`` (``HELD_OUT_REGIONS``, 9000 + i), ``"selection"`` (``SELECTION_REGIONS``, 10000 + i), or a list of
+    regions of one's own (seeds ``seed`` + i).
+    ``search_models_dir``: the search ensemble (the node's ``search_models_dir`` rule: '' / None = the shipped one
+    next to the shipped primary and pose model, 'none' = search with the pose model, else the primary).
     ``effects``: also trace before's and after's actual systematic p95 to the simulator's effects
     (``resim.effect_ablation``: each effect switched off in turn), next to the model's predicted systematic p95."""
     regions, seed0 = (REGION_SETS[region_set] if isinstance(region_set, str) else (region_set, seed))
-    from ..plan.recommend import gain_and_uncertainty, recommend
+    from ..plan.ensemble_search import SearchEnsemble, load_search_ensemble
+    from ..plan.ensemble_search import search as search_with
+    from ..plan.recommend import gain_and_uncertainty
     from ..plan.resim import GroundTruth, Region, effect_ablation, verify
+    from ..scan.resources import search_models_path
 
     scanner, model, pose, handler = _models(model_dir, pose_model_dir)
-    search = pose if pose is not None else model
-    cal = recommend_calibration(search)
+    where = search_models_path(model_dir, pose_model_dir, search_models_dir)
+    search = (load_search_ensemble(where, model) if where is not None
+              else pose if pose is not None else model)
+    members = search.members if isinstance(search, SearchEnsemble) else [search]
+    cals = [recommend_calibration(m) for m in members]
     rel_unc = recommend_kw.get("prediction_rel_unc", FROM_MODEL)
-    rel_unc = cal.prediction_rel_unc if rel_unc == FROM_MODEL else rel_unc
+    rel_uncs = [c.prediction_rel_unc if rel_unc == FROM_MODEL else rel_unc for c in cals]
     out: list[dict[str, Any]] = []
     um = 1e3
     for i, (art, st, direction) in enumerate(regions[:n_regions]):
         t0 = time.monotonic()
         scan, res, c, rows = _judged_region(handler, scanner, art, st, direction, seed0 + i, radius_mm)
-        rec = recommend(search, res.context, rows, res.features, scan.pose, scanner, scan.settings, **recommend_kw)
+        rec = search_with(search, res.context, rows, res.features, scan.pose, scanner, scan.settings, **recommend_kw)
         checked: Any = rec
         if against_all:
-            listed = recommend(search, res.context, rows, res.features, scan.pose, scanner, scan.settings,
+            listed = search_with(search, res.context, rows, res.features, scan.pose, scanner, scan.settings,
                                **{**recommend_kw, "max_out_of_domain": 1.0})
             checked = SimpleNamespace(before=rec.before, best=rec.best, ranked=listed.ranked)
         truth, region = GroundTruth.from_scan(scan, scanner), Region(centre=c, radius_mm=radius_mm)
@@ -250,7 +284,8 @@ def verify_regions(model_dir: Path | None = None, radius_mm: float = 4.0, n_regi
         def s(x: ScanSettings) -> list[float]:
             return [x.lateral_density, x.direction_density, x.exposure_ms]
 
-        gain, gain_unc = gain_and_uncertainty(rec.before, rec.top if rec.top is not None else rec.best, rel_unc)
+        gain, gain_unc = (rec.gain if rec.gain is not None else
+                          gain_and_uncertainty(rec.before, rec.top if rec.top is not None else rec.best, rel_uncs[0]))
         out.append({
             "artifact": art.to_dict(), "judged_settings": list(st), "centre_mm": c.round(3).tolist(),
             "radius_mm": radius_mm, "seed": seed0 + i, "note": rec.note, "kept_current": rec.kept_current,
@@ -286,10 +321,12 @@ def verify_regions(model_dir: Path | None = None, radius_mm: float = 4.0, n_regi
         return float(np.median([r[k] for r in out]))
 
     return {"model": search.id, "judge_models": sorted({model.id, *([pose.id] if pose is not None else [])}),
-            "region_set": region_set if isinstance(region_set, str) else "own",
+            "region_set": region_set if isinstance(region_set, str) else f"own (seeds {seed} + i)",
             "rank_by": recommend_kw.get("rank_by", "score"),
             "candidates_checked": "all (domain check off)" if against_all else "the search's",
-            "recommender_calibration": {"source": cal.source, "prediction_rel_unc": rel_unc}, "regions": out,
+            "recommender_calibration": [{"model": m.id, "source": c.source, "prediction_rel_unc": k}
+                                        for m, c, k in zip(members, cals, rel_uncs, strict=True)],
+            "regions": out,
             "median": {"after_over_best": med("after_over_best"), "after_percentile": med("after_percentile"),
                        "rank_correlation": med("rank_correlation")}}
 
@@ -302,24 +339,27 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, default=None, help="JSON file to write (default: stdout)")
     p.add_argument("--model", type=Path, default=None, help="model set directory (default: the installed default)")
     p.add_argument("--pose-model", default=None, metavar="DIR|none",
-                   help="model set the search runs with (default: the shipped pose model, none with --model; "
-                        "'none': --model)")
+                   help="pose model set (default: the shipped one, none with --model)")
+    p.add_argument("--search-models", default=None, metavar="DIR|none",
+                   help="search ensemble (default: the shipped one, without --model and --pose-model)")
     p.add_argument("--radius", type=float, default=4.0, help="region radius, mm")
-    p.add_argument("--regions", type=int, default=len(REGIONS), help="use the first N regions")
+    p.add_argument("--regions", type=int, default=None, help="use the first N regions (default: all)")
     p.add_argument("--quick", action="store_true", help="3 x 3 tilts only, no turns (a quick check)")
     which = p.add_mutually_exclusive_group()
     which.add_argument("--validation", action="store_true",
-                       help="the nine validation regions (seeds 8000 + i) instead of the test regions")
+                       help="the validation regions (seeds 8000 + i)")
     which.add_argument("--held-out", action="store_true",
                        help="issue 29's held-out regions (seeds 9000 + i)")
+    which.add_argument("--drawn", type=int, default=None, metavar="SEED",
+                       help="12 regions drawn from SEED (10000: the selection set)")
     p.add_argument("--effects", action="store_true",
                    help="trace before's and after's systematic p95 to the simulator's effects")
     p.add_argument("--calibrate", action="store_true",
                    help="instead: calibrate the recommender on the validation regions")
     p.add_argument("--write-card", type=Path, default=None, metavar="DIR",
-                   help="with --calibrate: write them into the card of the model set in DIR")
+                   help="with --calibrate: into the card of the model set in DIR")
     p.add_argument("--against-all", action="store_true",
-                   help="seek the actual best among all candidates, those outside the model's domain included")
+                   help="seek the actual best among all candidates, out of domain included")
     p.add_argument("--rank-by", choices=("score", "predicted"), default="score",
                    help="the search's ranking (the node's: score)")
     p.set_defaults(func=run)
@@ -336,14 +376,18 @@ def run(args: argparse.Namespace) -> int:
             print("xmetro verify-recommend: --write-card needs --calibrate", file=sys.stderr)
             return 2
         if args.calibrate:
-            rep = calibrate(args.model, args.pose_model, args.radius,
-                            n_regions=max(1, min(args.regions, len(VALIDATION_REGIONS))), write_card=args.write_card,
-                            **kw)
+            n = len(VALIDATION_REGIONS) if args.regions is None else max(1, min(args.regions, len(VALIDATION_REGIONS)))
+            rep = calibrate(args.model, args.pose_model, args.radius, n_regions=n, write_card=args.write_card, **kw)
         else:
-            region_set = "validation" if args.validation else "held-out" if args.held_out else "test"
-            rep = verify_regions(args.model, args.radius, max(1, min(args.regions, len(REGION_SETS[region_set][0]))),
+            region_set: Any = ("validation" if args.validation else "held-out" if args.held_out
+                               else "test" if args.drawn is None else drawn_regions(args.drawn))
+            regions = REGION_SETS[region_set][0] if isinstance(region_set, str) else region_set
+            rep = verify_regions(args.model, args.radius,
+                                 len(regions) if args.regions is None else max(1, min(args.regions, len(regions))),
                                  against_all=args.against_all, region_set=region_set,
-                                 pose_model_dir=args.pose_model, effects=args.effects, **kw)
+                                 pose_model_dir=args.pose_model, effects=args.effects,
+                                 search_models_dir=args.search_models,
+                                 seed=0 if args.drawn is None else args.drawn, **kw)
     except (ModelLoadError, ValueError) as e:  # a missing or unusable model set, or --write-card's other model set
         print(f"xmetro verify-recommend: {e}", file=sys.stderr)
         return 2

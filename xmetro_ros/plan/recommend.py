@@ -159,6 +159,7 @@ class Recommendation:
     uses_uncertainty: bool = False  # False: U = 0, the ranking ignores noise
     n_out_of_domain: int = 0      # candidates discarded as outside the model's domain
     top: Candidate | None = None  # the best-ranked candidate (= best unless kept_current)
+    gain: tuple[float, float] | None = None  # the keep rule's predicted gain of ``top`` and its uncertainty (mm)
 
 
 def coverage_mask(ctx: Any, grazing_incidence_deg: float, grazing_view_deg: float, occluder: Any = None
@@ -329,7 +330,7 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
 
     Args:
         model_set: inference.ModelSet (feature_names, predict / predict_batch in mm; optionally
-            predict_with_uncertainty, in_domain / out_of_domain).
+            predict_with_uncertainty, in_domain / out_of_domain). Several at once: ``ensemble_search.search``.
         ctx: FeatureContext of the judged scan's processed points.
         rows: region rows into ``ctx`` (non-empty).
         before_features: (M, F) the judged features of all rows (the "before" prediction uses them; the region
@@ -365,7 +366,6 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
         RecommendCancelled: ``cancelled()`` became true.
     """
     from ..judge.features import REGISTRY, compute_features
-
     if rank_by not in RANK_BY:
         raise ValueError(f"rank_by must be one of {', '.join(RANK_BY)}, got {rank_by!r}")
     cal_source = ""
@@ -519,8 +519,9 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
         note += f"; recommender calibration: {cal_source}"
     top = ranked[0]
     best, kept = top, False
+    gain_pair: tuple[float, float] | None = None
     if keep_current:
-        gain, gain_unc = gain_and_uncertainty(before, top, prediction_rel_unc)
+        gain, gain_unc = gain_pair = gain_and_uncertainty(before, top, prediction_rel_unc)
         if not gain > gain_unc:
             # The current set-up, evaluated like the candidates when it is one of them (same cloud prediction).
             cur = [c for c in ranked if c.settings == settings and np.allclose(c.rotation, np.eye(3))]
@@ -533,4 +534,4 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
     return Recommendation(best=best, before=before, ranked=ranked, n_points=m, n_region=n_region,
                           n_orientations=len(orients), n_orientations_kept=n_kept, n_settings=len(cands), note=note,
                           n_orientations_evaluated=n_eval, kept_current=kept, uses_uncertainty=uses_u,
-                          n_out_of_domain=n_ood, top=top)
+                          n_out_of_domain=n_ood, top=top, gain=gain_pair)

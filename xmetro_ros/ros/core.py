@@ -121,6 +121,7 @@ class XmetroCore:
         except Exception as e:
             self.degraded = f"model unavailable: {e}"
         self.pose_model, self.pose_model_error = self._load_pose_model()
+        self.search_ensemble, self.search_ensemble_error = self._load_search_ensemble()
         self.handler = ScanHandler(self.model, self.scanner, handler_params(self.values), pose_model=self.pose_model)
         warm_output_kernels()  # the output record kernel, compiled or loaded now rather than on the first scan
         self._settings: deque[SettingsEntry] = deque(maxlen=int(values["settings_history"]))
@@ -153,6 +154,26 @@ class XmetroCore:
                 self.log.warning(msg)
             return None, msg
 
+    def _load_search_ensemble(self) -> tuple[Any, str]:
+        """(the search ensemble or None, why there is none when one was asked for), chosen by
+        ``resources.search_models_path`` from ``model_dir``, ``pose_model_dir`` and ``search_models_dir``; a failure
+        leaves the search with the pose model (logged, on /diagnostics)."""
+        from ..plan.ensemble_search import load_search_ensemble
+        from ..scan.resources import search_models_path
+
+        v = self.values
+        path = str(v.get("search_models_dir", ""))
+        where = search_models_path(v["model_dir"], str(v.get("pose_model_dir", "")), path)
+        if self.model is None or where is None:
+            return None, ""
+        try:
+            return load_search_ensemble(where, self.model, threads=onnx_threads(v)), ""
+        except Exception as e:
+            msg = f"search ensemble unavailable ({path or 'shipped'}): {e}; searching with one model set"
+            if self.log is not None:
+                self.log.warning(msg)
+            return None, msg
+
     @property
     def model_id(self) -> str:
         return self.model.id if self.model is not None else ""
@@ -165,8 +186,10 @@ class XmetroCore:
 
     @property
     def search_model(self) -> Any:
-        """The model set ``~/recommend_settings`` searches with: the pose model when loaded (trained at the
-        orientations the search tries), else the primary."""
+        """The model set ``~/recommend_settings`` searches with: the search ensemble when loaded, else the pose
+        model when loaded (trained at the orientations the search tries), else the primary."""
+        if self.search_ensemble is not None:
+            return self.search_ensemble
         return self.pose_model if self.pose_model is not None else self.model
 
     def update_values(self, changes: dict[str, Any]) -> None:
@@ -459,7 +482,8 @@ class XmetroCore:
         Raises:
             RecommendCancelled: ``cancelled()`` became true during the search.
         """
-        from ..plan.recommend import RecommendCancelled, recommend
+        from ..plan.ensemble_search import search
+        from ..plan.recommend import RecommendCancelled
 
         base = RecommendSettings.Response()
         base.model_id = self.search_model.id if self.model is not None else ""
@@ -486,7 +510,7 @@ class XmetroCore:
             max_turn = v["recommend_max_turn"] if req.max_turn == 0 else max(req.max_turn, 0.0)
             if not (math.isfinite(max_tilt) and math.isfinite(max_turn)):
                 raise ServiceError("max_tilt / max_turn must be finite")
-            rec = recommend(self.search_model, judged.context, rows, judged.features, judged.pose, self.scanner,
+            rec = search(self.search_model, judged.context, rows, judged.features, judged.pose, self.scanner,
                             judged.settings, cands or None, max_points=int(v["recommend_max_points"]),
                             max_tilt=max_tilt, tilt_steps=int(v["recommend_tilt_steps"]), max_turn=max_turn,
                             turn_steps=int(v["recommend_turn_steps"]),

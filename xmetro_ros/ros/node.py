@@ -156,7 +156,8 @@ class XmetroWiring(ProfileInput, ScanWorker, ServiceHandlers):
                                      scan_timeout=float(values["scan_timeout"]), cad_mesh=str(values["cad_mesh"]),
                                      cad_error=core.cad_error,
                                      pose_model_id=core.pose_model.id if core.pose_model is not None else "",
-                                     pose_model_error=core.pose_model_error)
+                                     pose_model_error="; ".join(e for e in (core.pose_model_error,
+                                                                            core.search_ensemble_error) if e))
         self.diag.loss_warn_period = float(values["loss_warn_period"])
         self._qmax = int(values["queue_depth"])
         self.core = core

@@ -44,6 +44,10 @@ PARAMS: tuple[ParamSpec, ...] = (
               "judges scans taken there that the primary's domain does not hold, and the recommender searches with "
               "it; '' = the shipped pose model when model_dir is '' (else none), 'none' = no second model",
               read_only=True),
+    ParamSpec("search_models_dir", "", "path", "pose model sets the recommender searches with together (one "
+              "sub-directory each; ranked on their mean, a change advised only beyond their disagreement); '' = the "
+              "shipped ensemble when model_dir and pose_model_dir are '' (else none), 'none' = search with the pose "
+              "model", read_only=True),
     ParamSpec("scanner_config", "", "path", "scanner YAML; '' = the packaged config/scanners/default.yaml",
               read_only=True),
     ParamSpec("allow_foreign_model", False, "", "use a model set trained for another scanner than scanner_config's "
@@ -102,7 +106,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("recommend_turn_steps", 3, "steps", "turn values in [-max, max] (odd keeps 0)", 1, 15),
     ParamSpec("recommend_min_coverage", 0.95, "fraction", "discard candidates covering (lit, seen, not grazing) "
               "less of the region than min(this, current coverage)", 0.0, 1.0),
-    ParamSpec("recommend_max_seconds", 10.0, "s", "time budget of one ~/recommend_settings search (the current "
+    ParamSpec("recommend_max_seconds", 30.0, "s", "time budget of one ~/recommend_settings search (the current "
               "orientation is always evaluated; the answer says when the search was cut short)", 0.1, 600.0),
     ParamSpec("max_processing_time", 5.0, "s", "watchdog: a scan still processing after this long is abandoned "
               "(ERROR TIMEOUT, checked between stages); a worker that does not come back is reported stalled "

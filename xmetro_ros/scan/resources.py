@@ -97,3 +97,28 @@ def pose_model_path(model_dir: str | Path | None, pose_model_dir_value: str | Pa
     if v:
         return Path(v)
     return None if model_dir else pose_model_dir()
+
+
+def search_models_dir() -> Path:
+    """Directory of the shipped search ensemble (one sub-directory per pose model set the rescan search consults
+    together: ``plan.ensemble_search``), found like :func:`default_model_dir`."""
+    here = package_dir() / "models" / "search"
+    if here.is_dir():
+        return here
+    share = ament_share_dir()
+    if share is not None and (share / "models" / "search").is_dir():
+        return share / "models" / "search"
+    return here
+
+
+def search_models_path(model_dir: str | Path | None, pose_model_dir_value: str | Path | None,
+                       search_models_value: str | Path | None) -> Path | None:
+    """The search ensemble to load (the node's ``search_models_dir`` rule): 'none' → None (the search uses the pose
+    model, else the primary); a path → it; '' or None → the shipped ensemble, but only next to the shipped primary
+    and pose model (both '' or None: models of one's own are searched with as they are)."""
+    v = "" if search_models_value is None else str(search_models_value)
+    if v.lower() == "none":
+        return None
+    if v:
+        return Path(v)
+    return None if (model_dir or pose_model_dir_value) else search_models_dir()
