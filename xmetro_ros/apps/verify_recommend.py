@@ -74,6 +74,8 @@ HELD_OUT_REGIONS: list[tuple[Artifact, tuple[float, float, float], tuple[float, 
     (Sphere(27.5), (6.0, 3.0, 2.0), (-0.555, -0.358, 0.751)),
     (Cylinder(20.0), (10.0, 3.0, 0.1), (-0.513, -0.477, 0.714)),
 ]
+
+
 def drawn_regions(seed: int, n: int = 12) -> list[tuple[Artifact, tuple[float, float, float],
                                                     tuple[float, float, float]]]:
     """``n`` regions of the held-out kind drawn anew from ``numpy.random.default_rng(seed)`` (judged with seeds
@@ -91,6 +93,7 @@ def drawn_regions(seed: int, n: int = 12) -> list[tuple[Artifact, tuple[float, f
         if isinstance(art, Cylinder):
             d = np.array([d[0], 0.0, d[2]]) / np.hypot(d[0], d[2])
         st = (float(rng.choice([6.0, 10.0, 15.0])), float(rng.choice([3.0, 4.0, 5.0])), exposure)
+        # + 0.0: -0.0 (the cylinder's dropped y) is written 0.0
         out.append((art, st, (round(float(d[0]), 3) + 0.0, round(float(d[1]), 3) + 0.0, round(float(d[2]), 3) + 0.0)))
     return out
 

@@ -366,6 +366,7 @@ def recommend(model_set: Any, ctx: Any, rows: np.ndarray, before_features: np.nd
         RecommendCancelled: ``cancelled()`` became true.
     """
     from ..judge.features import REGISTRY, compute_features
+
     if rank_by not in RANK_BY:
         raise ValueError(f"rank_by must be one of {', '.join(RANK_BY)}, got {rank_by!r}")
     cal_source = ""

@@ -63,12 +63,14 @@ def config_path(name: str) -> Path:
         + ("" if share is not None else f"; no {PACKAGE} in the ament index of AMENT_PREFIX_PATH") + ")")
 
 
-def _shipped_model_dir(name: str) -> Path:
+def _shipped_model_dir(name: str, marker: str = "card.json") -> Path:
+    """``models/NAME`` in the package when it holds ``marker`` (a file or directory; '' = the directory itself),
+    else under the ament index's share directory when there, else the package path."""
     here = package_dir() / "models" / name
-    if (here / "card.json").exists():
+    if (here / marker).exists():
         return here
     share = ament_share_dir()
-    if share is not None and (share / "models" / name / "card.json").exists():
+    if share is not None and (share / "models" / name / marker).exists():
         return share / "models" / name
     return here
 
@@ -102,13 +104,7 @@ def pose_model_path(model_dir: str | Path | None, pose_model_dir_value: str | Pa
 def search_models_dir() -> Path:
     """Directory of the shipped search ensemble (one sub-directory per pose model set the rescan search consults
     together: ``plan.ensemble_search``), found like :func:`default_model_dir`."""
-    here = package_dir() / "models" / "search"
-    if here.is_dir():
-        return here
-    share = ament_share_dir()
-    if share is not None and (share / "models" / "search").is_dir():
-        return share / "models" / "search"
-    return here
+    return _shipped_model_dir("search", "")
 
 
 def search_models_path(model_dir: str | Path | None, pose_model_dir_value: str | Path | None,
