@@ -173,6 +173,32 @@ def test_region_labels_on_parts() -> None:
     assert REGIONS[lab[0]] == "curved" and 0.1 < curv[0] < 0.25  # cylinder R 3: 1/(2R) = 0.17 /mm
 
 
+def test_saddle_regions_from_principal_curvatures() -> None:
+    """A saddle's mean curvature can be ~0, so the mean alone calls it flat or curved: the fitted principal
+    curvatures say saddle. The saddle part's centre has κ −1/45 and +1/25 /mm (H +0.0089): saddle at thresholds
+    below 1/45 = 0.022 /mm, not above it; the egg-crate's saddle points between bumps (κ ±0.148, H 0) and the torus's
+    inner side (tube +0.2, ring −1/8) are saddles, its outer side (+0.2, +1/14) and the egg-crate's bump are not;
+    the cylinder (fillet, 0 and +1/3) is not a saddle at the default threshold."""
+    centre = np.array([[0.0, 0.0, 4.0]])
+    sad = make_part("saddle")
+    for t, want in ((0.018, "saddle"), (0.026, "curved")):
+        lab, curv = label_regions(sad, centre, saddle_curvature=t)
+        assert REGIONS[lab[0]] == want, (t, curv)
+    egg = make_part("eggcrate")
+    lab, curv = label_regions(egg, np.array([[5.0, 5.0, 3.0], [-5.0, 5.0, 3.0], [0.0, 0.0, 4.5], [10.0, 0.0, 1.5]]))
+    assert [REGIONS[k] for k in lab] == ["saddle", "saddle", "curved", "concave"]
+    # H ≈ 0 where |κ| is 0.148 (the sampled mean is biased on the slope); the bump: κ1 = κ2 = 1.5 (2π/20)² /mm
+    assert np.all(np.abs(curv[:2]) < 0.02) and 0.12 < curv[2] < 0.18
+    tor = make_part("torus")
+    inner = 11.0 - 5.0 * np.cos(np.radians(50.0)), 5.0 * np.sin(np.radians(50.0))
+    outer = 11.0 + 5.0 * np.cos(np.radians(50.0)), 5.0 * np.sin(np.radians(50.0))
+    lab, _ = label_regions(tor, np.array([[0.0, -inner[0], inner[1]], [0.0, -outer[0], outer[1]]]))
+    assert [REGIONS[k] for k in lab] == ["saddle", "curved"]
+    fil = make_part("fillet")
+    lab, _ = label_regions(fil, np.array([[0.0, -6.0 + 3 * np.sin(0.4), 6.0 + 3 * np.cos(0.4)]]))
+    assert REGIONS[lab[0]] == "curved"
+
+
 def test_icp_recovers_the_pose_with_its_uncertainty() -> None:
     from xmetro_ros.parts.registration import perturbed, register_to_cad
 

@@ -122,3 +122,57 @@ def test_intervals_hold_on_parts_rescanned_from_tilted_heads(handler_with_pose_m
     assert cov["n"] > 5_000
     assert min(cov["coverage_xyz"]) >= 0.93, cov["coverage_xyz"]
     assert r["cad"]["known_pose"]["normal_coverage_in_domain"] >= 0.93  # along the CAD normal, as parts.md quotes
+
+
+#: Issue 28's parts beyond blade, bowl and step (fillet is ours): none is in a training or calibration campaign (the
+#: calibration saddle is symmetric, ±1/30 /mm; this one is +1/25 and −1/45).
+NEW_PARTS = ("saddle", "torus", "eggcrate")
+
+
+@pytest.fixture(scope="module")
+def new_parts_at_default(handler: ScanHandler) -> dict[str, dict]:
+    """The three parts at issue 28's default setting 10/4/0.5, other draws than the study's (seed 17)."""
+    return {p: evaluate_part(p, handler, ScanSettings(10.0, 4.0, 0.5), seed=17, register=False) for p in NEW_PARTS}
+
+
+@pytest.mark.parametrize("part", NEW_PARTS)
+def test_issue_28_acceptance_met_on_the_new_parts(new_parts_at_default: dict[str, dict], part: str) -> None:
+    """What issue 28 asks and these parts meet at 10/4/0.5 (measured, seed 17): compensation MAE after / before
+    ≤ 0.8 (0.67-0.70), at most 30 % of the points out of domain (0.1-13.3 %), along the CAD normal and on Z
+    (the error's largest axis) a coverage in [93, 97] % (95.5-96.5 %), Z at the oracle floor, verdict OK."""
+    r = new_parts_at_default[part]
+    assert r["verdict"] == "OK", r["verdict_message"]
+    kp = r["cad"]["known_pose"]
+    assert kp["after"]["mae_um"] <= 0.8 * kp["before"]["mae_um"]
+    assert r["out_of_domain_share"] <= 0.30
+    assert 0.93 <= kp["normal_coverage_in_domain"] <= 0.97
+    assert 0.93 <= r["coverage"]["in_domain"]["coverage_xyz"][2] <= 0.97
+    assert r["mae_ratio_to_oracle"][2] < 1.1
+
+
+@pytest.mark.parametrize("part", [
+    pytest.param("saddle", marks=pytest.mark.xfail(strict=True, reason=(
+        "issue 28 open: the saddle's X covers 89.8 % (90.3 % in the study): the model's X error on this saddle "
+        "(MAE 1.33× the oracle's) is wider than the U the saddle and convex classes were calibrated to"))),
+    pytest.param("torus", marks=pytest.mark.xfail(strict=True, reason=(
+        "issue 28 open: X / Y cover 97.2 / 97.8 %, above 97 %: on the torus's flat plate the X / Y error is ~0 "
+        "and U does not go below its 1 µm floor times the class multiplier"))),
+    "eggcrate"])
+def test_issue_28_every_axis_within_93_97(new_parts_at_default: dict[str, dict], part: str) -> None:
+    """Issue 28's per-axis bounds: the in-domain coverage of each axis in [93, 97] %. Met on the egg-crate (93.8 /
+    96.7 / 96.1 %); the saddle and the torus fail it (strict xfail: a fix turns them into failures to remove)."""
+    xyz = new_parts_at_default[part]["coverage"]["in_domain"]["coverage_xyz"]
+    assert all(0.93 <= c <= 0.97 for c in xyz), xyz
+
+
+@pytest.mark.parametrize("part", [
+    "saddle", "torus",
+    pytest.param("eggcrate", marks=pytest.mark.xfail(strict=True, reason=(
+        "issue 28 open: the shape domain flags the egg-crate's bumps and pits (κ ≈ ±0.15 /mm both ways, a shape "
+        "no calibration surface has) where the intervals hold: 13.3 % of the points, 10.0 % of the misses")))])
+def test_issue_28_flagged_points_hold_their_share_of_the_misses(new_parts_at_default: dict[str, dict],
+                                                                 part: str) -> None:
+    """The points flagged out of domain hold at least their share of the misses (point, axis pairs outside U)."""
+    r = new_parts_at_default[part]
+    assert r["misses_out_of_domain_share"] >= r["out_of_domain_share"], (r["misses_out_of_domain_share"],
+                                                                          r["out_of_domain_share"])

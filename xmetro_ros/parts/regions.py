@@ -1,16 +1,21 @@
 """Region type of points on a CAD mesh: flat, curved (convex), edge (a sharp convex crease nearby), concave (a
-concave crease nearby, or concave curvature). Millimetres, the mesh's frame.
+concave crease nearby, or concave curvature), saddle (curved both ways, in opposite senses). Millimetres, the
+mesh's frame.
 
 From surface samples of the CAD within ``radius_mm`` of the point's closest CAD point q (the face centroids plus
 area-uniform samples ``spacing_mm`` apart, each with its face's normal; scipy k-d tree, the ``k`` nearest):
 
 - a crease: a neighbour face whose normal turns more than ``crease_deg`` from the normal at q; convex when
   (n_j − n_q)·(c_j − q) > 0 (the normals spread apart, as on the outside of a box edge), concave otherwise;
-- mean normal curvature κ ≈ mean over the other neighbours of (n_j − n_q)·(c_j − q) / |c_j − q|² (1/mm; > 0
-  convex, < 0 concave; a sphere of radius R gives 1/R, a cylinder 1/(2R)).
+- mean normal curvature κ ≈ mean over the other neighbours of k_j = (n_j − n_q)·(c_j − q) / |c_j − q|² (1/mm; > 0
+  convex, < 0 concave; a sphere of radius R gives 1/R, a cylinder 1/(2R));
+- principal curvatures κmin ≤ κmax: Euler's k(θ) = κ1 cos²θ + κ2 sin²θ fitted to the k_j by least squares over
+  the directions θ_j of (c_j − q) in the tangent plane (the 2 × 2 second fundamental form; its eigenvalues).
 
-Label (first that applies): ``edge`` (convex crease), ``concave`` (concave crease or κ < −``flat_curvature``),
-``curved`` (κ > ``flat_curvature``), ``flat``. Vectorised (fixed k, no per-point loop).
+Label (first that applies): ``edge`` (convex crease), ``concave`` (concave crease), ``saddle`` (κmax >
+``saddle_curvature`` and κmin < −``saddle_curvature``: a saddle's H can be ~0, so the mean curvature alone calls it
+flat), ``concave`` (κ < −``flat_curvature``), ``curved`` (κ > ``flat_curvature``), ``flat``. Vectorised (fixed k,
+no per-point loop).
 """
 
 from __future__ import annotations
@@ -24,13 +29,14 @@ if TYPE_CHECKING:
 
 __all__ = ["REGIONS", "label_regions"]
 
-#: Region names; ``label_regions`` returns indices into this tuple.
-REGIONS = ("flat", "curved", "edge", "concave")
+#: Region names; ``label_regions`` returns indices into this tuple (``saddle`` last: the older four keep their
+#: indices in results files written before it).
+REGIONS = ("flat", "curved", "edge", "concave", "saddle")
 
 
 def label_regions(cad: MeshArtifact, points: np.ndarray, *, radius_mm: float = 1.0, crease_deg: float = 25.0,
-                  flat_curvature: float = 0.004, k: int = 64, spacing_mm: float = 0.25,
-                  chunk: int = 20_000) -> tuple[np.ndarray, np.ndarray]:
+                  flat_curvature: float = 0.004, saddle_curvature: float = 0.01, k: int = 64,
+                  spacing_mm: float = 0.25, chunk: int = 20_000) -> tuple[np.ndarray, np.ndarray]:
     """(region index (N,) into :data:`REGIONS`, mean curvature (N,) 1/mm) of ``points`` (N, 3) mm, by the CAD
     surface around their closest point (see the module docstring)."""
     from scipy.spatial import cKDTree
@@ -62,12 +68,36 @@ def label_regions(cad: MeshArtifact, points: np.ndarray, *, radius_mm: float = 1
         smooth = valid & ~sharp & (d2 > 1e-8)
         kap = np.where(smooth, spread / np.where(d2 > 1e-8, d2, 1.0), 0.0)
         c = kap.sum(axis=1) / np.maximum(smooth.sum(axis=1), 1)
+        kmin, kmax = _principal(kap, smooth, dc, nq[sl])
         lb = np.zeros(len(c), np.int64)
         lb[c > flat_curvature] = REGIONS.index("curved")
-        lb[(c < -flat_curvature) | concave_crease] = REGIONS.index("concave")
+        lb[c < -flat_curvature] = REGIONS.index("concave")
+        lb[(kmax > saddle_curvature) & (kmin < -saddle_curvature)] = REGIONS.index("saddle")
+        lb[concave_crease] = REGIONS.index("concave")
         lb[convex_crease] = REGIONS.index("edge")
         lab[sl], curv[sl] = lb, c
     return lab, curv
+
+
+def _principal(kap: np.ndarray, w: np.ndarray, dc: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(κmin, κmax) (n,) 1/mm: the 2 × 2 form [[a, b], [b, c]] whose k(t) = a tx² + 2b tx ty + c ty² fits the
+    normal curvatures ``kap`` (n, k) of the neighbours ``w`` (n, k) along their tangent directions (``dc`` (n, k, 3)
+    projected on the plane of ``n`` (n, 3)); its eigenvalues. Points with too few directions get 0, 0."""
+    helper = np.where(np.abs(n[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+    e1 = np.cross(n, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(n, e1)
+    tx, ty = np.einsum("nkj,nj->nk", dc, e1), np.einsum("nkj,nj->nk", dc, e2)
+    r = np.hypot(tx, ty)
+    ok = w & (r > 1e-9)
+    tx, ty = np.where(ok, tx / np.where(ok, r, 1.0), 0.0), np.where(ok, ty / np.where(ok, r, 1.0), 0.0)
+    rows = np.stack([tx * tx, 2.0 * tx * ty, ty * ty], axis=-1)  # (n, k, 3); zero rows for unused neighbours
+    a = np.einsum("nki,nkj->nij", rows, rows) + 1e-9 * np.eye(3)
+    rhs = np.einsum("nki,nk->ni", rows, np.where(ok, kap, 0.0))
+    fit = np.linalg.solve(a, rhs[..., None])[..., 0]
+    well = np.linalg.cond(a) < 1e6
+    ev = np.linalg.eigvalsh(np.stack([np.stack([fit[:, 0], fit[:, 1]], -1), np.stack([fit[:, 1], fit[:, 2]], -1)], 1))
+    return np.where(well, ev[:, 0], 0.0), np.where(well, ev[:, 1], 0.0)
 
 
 def _surface_samples(cad: MeshArtifact, spacing_mm: float) -> tuple[np.ndarray, np.ndarray]:

@@ -11,8 +11,8 @@ settings (three of the study's levels), with the model set given (default: the s
 - prediction: MAE and p95 of |predicted − actual error| per axis (actual = nominal on the manufactured part −
   measured, noise included), next to the oracle floor (|expected − actual|, the simulator's noise-free error);
 - intervals: coverage of |actual − predicted| ≤ U per axis, per region type (``regions.label_regions`` on the
-  CAD: flat, curved, edge, concave), and in vs out of domain (flag OUT_OF_DOMAIN of the judge; also "any quality
-  flag"); out-of-domain share;
+  CAD: flat, curved, edge, concave, saddle), and in vs out of domain (flag OUT_OF_DOMAIN of the judge; also "any
+  quality flag"); out-of-domain share;
 - CAD deviation (``cad_judge.cad_deviation``, pose known): MAE and p95 of |measured − CAD − true form error| along
   the CAD normal, before and after compensation, and their ratio; again with best-fit registration (ICP from a
   start 0.3 mm / 0.5° off): the raw and the compensated scan each registered on its own against the truth = the
@@ -36,7 +36,7 @@ from .regions import REGIONS
 
 __all__ = ["DEFAULT_PARTS", "DEFAULT_SETTINGS", "PRESENTATION", "evaluate_part", "run_study"]
 
-DEFAULT_PARTS = ("blade", "bowl", "step", "fillet")
+DEFAULT_PARTS = ("blade", "bowl", "step", "fillet", "saddle", "torus", "eggcrate")
 #: (lateral_density /mm, direction_density /mm, exposure ms): low, default and high levels of the study
 DEFAULT_SETTINGS = ((6.0, 3.0, 0.1), (10.0, 4.0, 0.5), (15.0, 5.0, 2.0))
 FORM_UM = 40.0
@@ -211,11 +211,12 @@ def _plot(part: str, maps: dict[str, np.ndarray], path: Path) -> None:
         a.set_title(f"{part}: {title}", fontsize=9)
         a.set_aspect("equal")
     fig.colorbar(sc, ax=ax[:2], label="µm", shrink=0.8)
-    cols = np.array(["#999999", "#1f77b4", "#d62728", "#2ca02c"])
+    cols = np.array(["#999999", "#1f77b4", "#d62728", "#2ca02c", "#9467bd"])
     ax[2].scatter(p[:, 0], p[:, 1], c=cols[maps["region"]], s=0.6)
     bad = ~maps["covered"]
     ax[2].scatter(p[bad, 0], p[bad, 1], c="k", s=0.6, marker="x", linewidths=0.3)
-    ax[2].set_title("regions: flat grey, curved blue, edge red, concave green\nx: actual error outside U",
+    ax[2].set_title("regions: flat grey, curved blue, edge red, concave green, saddle purple\n"
+                    "x: actual error outside U",
                     fontsize=8)
     ax[2].set_aspect("equal")
     for a in ax:
@@ -228,8 +229,8 @@ def _plot(part: str, maps: dict[str, np.ndarray], path: Path) -> None:
 def run_study(out_dir: str | Path, *, model_dir: str | Path | None = None, parts: tuple[str, ...] = DEFAULT_PARTS,
               settings: tuple[tuple[float, float, float], ...] = DEFAULT_SETTINGS, seed: int = 0,
               plots: bool = True, log: Any = print) -> dict[str, Any]:
-    """Run the study, write ``out_dir/<part>.json`` (one entry per settings), ``summary.json`` and (``plots``)
-    ``<part>.png`` (deviation maps at the default settings). Returns the summary."""
+    """Run the study, write ``out_dir/<part>.json`` (one entry per settings), ``summary.json``, ``summary.md``,
+    ``regions.md`` and (``plots``) ``<part>.png`` (deviation maps at the default settings). Returns the summary."""
     from ..judge.inference import ModelSet
     from ..judge.scan_handler import ScanHandler
     from ..scan.scanner import ScannerModel, ScanSettings
@@ -259,6 +260,7 @@ def run_study(out_dir: str | Path, *, model_dir: str | Path | None = None, parts
         summary["parts"][name] = rows
     (out_dir / "summary.json").write_text(json.dumps(_condense(summary), indent=1))
     (out_dir / "summary.md").write_text(markdown(summary))
+    (out_dir / "regions.md").write_text(markdown_regions(summary))
     return summary
 
 
@@ -312,8 +314,15 @@ def markdown(summary: dict[str, Any]) -> str:
                                                              strict=True)]
             lines.append(f"| {name} | {'/'.join(f'{x:g}' for x in r['settings'])} | " + " | ".join(axes)
                          + f" | {_pct(kp['normal_coverage'])} / {_pct(kp['normal_coverage_in_domain'])} |")
-    lines += ["", "Coverage per region type, all points / in domain: per axis x, y, z, then along the CAD normal "
-              "(n = points of that region):", "",
+    return "\n".join(lines) + "\n"
+
+
+def markdown_regions(summary: dict[str, Any]) -> str:
+    """The coverage per region type (``regions.md``; a page of its own: with seven parts it would take
+    ``summary.md`` over the docs' 3,000 words)."""
+    lines = [f"Model set `{summary['model']}`, seed {summary['seed']}, form error ±{summary['form_um']:g} µm.", "",
+             "Coverage per region type, all points / in domain: per axis x, y, z, then along the CAD normal "
+             "(n = points of that region):", "",
               "| part | settings | " + " | ".join(REGIONS) + " |", "|---|---|" + "---|" * len(REGIONS)]
     for name, rows in summary["parts"].items():
         for r in rows:

@@ -6,7 +6,13 @@ down along −Z); every part sits within |x| ≤ 24, |y| ≤ 18, −12 ≤ z ≤
 - ``bowl``: a plate with a spherical pocket (concave; R 25 mm, opening Ø32 mm, 5.8 mm deep; convex rim);
 - ``step``: a stepped block (two vertical walls across the scan direction: sharp convex and concave edges, the
   camera occluded by the part behind the rising wall);
-- ``fillet``: a block with a 50° ramp between convex and concave fillets of R 3 mm.
+- ``fillet``: a block with a 50° ramp between convex and concave fillets of R 3 mm;
+- ``saddle``: a block with a saddle top, z = 4 + x² / (2 · 45) − y² / (2 · 25) mm (principal curvatures +1/45 and
+  −1/25 /mm at the centre: unlike the calibration saddle's ±1/30, not symmetric);
+- ``torus``: a half torus ring lying on a plate (ring radius 11 mm, tube radius 5 mm): convex outside, saddle on
+  its inner side, a concave 90° crease where the tube meets the plate, a flat centre Ø12 mm;
+- ``eggcrate``: a block with an egg-crate top, z = 3 + 1.5 · cos(2πx / 20) · cos(2πy / 20) mm (convex bumps,
+  concave pits, saddles between; curvatures up to ±0.15 /mm, slopes up to 25°).
 
 Each part is a closed height-field solid: the top surface z = g(x, y) on a grid (duplicate grid lines make vertical
 walls), four side walls and a bottom. ``make_part(name, form_um)``: the CAD (``form_um`` 0) or the manufactured
@@ -116,9 +122,31 @@ def _fillet(step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return xs, ys, np.broadcast_to(_fillet_profile(ys), (len(xs), len(ys))).copy()
 
 
+def _saddle(step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    xs, ys = _grid(-22.0, 22.0, step), _grid(-17.0, 17.0, step)
+    x, y = np.meshgrid(xs, ys, indexing="ij")
+    return xs, ys, 4.0 + x**2 / (2.0 * 45.0) - y**2 / (2.0 * 25.0)
+
+
+def _torus(step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    ring, tube = 11.0, 5.0
+    xs, ys = _grid(-21.0, 21.0, step), _grid(-18.0, 18.0, step)
+    x, y = np.meshgrid(xs, ys, indexing="ij")
+    d = np.hypot(x, y) - ring
+    return xs, ys, np.sqrt(np.maximum(tube**2 - d**2, 0.0))
+
+
+def _eggcrate(step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    xs, ys = _grid(-22.0, 22.0, step), _grid(-18.0, 18.0, step)
+    x, y = np.meshgrid(xs, ys, indexing="ij")
+    k = 2.0 * np.pi / 20.0
+    return xs, ys, 3.0 + 1.5 * np.cos(k * x) * np.cos(k * y)
+
+
 #: name → surface generator (grid step mm → xs, ys, z)
 PARTS: dict[str, Callable[[float], tuple[np.ndarray, np.ndarray, np.ndarray]]] = {
     "blade": _blade, "bowl": _bowl, "step": _step, "fillet": _fillet,
+    "saddle": _saddle, "torus": _torus, "eggcrate": _eggcrate,
 }
 
 
