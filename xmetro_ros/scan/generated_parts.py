@@ -7,8 +7,9 @@ down along −Z); every part sits within |x| ≤ 24, |y| ≤ 18, −12 ≤ z ≤
 - ``step``: a stepped block (two vertical walls across the scan direction: sharp convex and concave edges, the
   camera occluded by the part behind the rising wall);
 - ``fillet``: a block with a 50° ramp between convex and concave fillets of R 3 mm;
-- ``saddle``: a block with a saddle top, z = 4 + x² / (2 · 45) − y² / (2 · 25) mm (principal curvatures +1/45 and
-  −1/25 /mm at the centre: unlike the calibration saddle's ±1/30, not symmetric);
+- ``saddle``: a block with a saddle top, z = 4 + x² / (2 · 45) − y² / (2 · 25) mm (principal curvatures −1/45
+  along x and +1/25 /mm along y at the centre, convex positive: unlike the calibration saddle's ±1/30, not
+  symmetric);
 - ``torus``: a half torus ring lying on a plate (ring radius 11 mm, tube radius 5 mm): convex outside, saddle on
   its inner side, a concave 90° crease where the tube meets the plate, a flat centre Ø12 mm;
 - ``eggcrate``: a block with an egg-crate top, z = 3 + 1.5 · cos(2πx / 20) · cos(2πy / 20) mm (convex bumps,
