@@ -96,8 +96,9 @@ def _principal(kap: np.ndarray, w: np.ndarray, dc: np.ndarray, n: np.ndarray) ->
     rhs = np.einsum("nki,nk->ni", rows, np.where(ok, kap, 0.0))
     fit = np.linalg.solve(a, rhs[..., None])[..., 0]
     well = np.linalg.cond(a) < 1e6
-    ev = np.linalg.eigvalsh(np.stack([np.stack([fit[:, 0], fit[:, 1]], -1), np.stack([fit[:, 1], fit[:, 2]], -1)], 1))
-    return np.where(well, ev[:, 0], 0.0), np.where(well, ev[:, 1], 0.0)
+    # eigenvalues of [[a, b], [b, c]]: H ∓ √(((a − c)/2)² + b²), as preprocess.curvature's grid fit
+    hm, dm = 0.5 * (fit[:, 0] + fit[:, 2]), np.hypot(0.5 * (fit[:, 0] - fit[:, 2]), fit[:, 1])
+    return np.where(well, hm - dm, 0.0), np.where(well, hm + dm, 0.0)
 
 
 def _surface_samples(cad: MeshArtifact, spacing_mm: float) -> tuple[np.ndarray, np.ndarray]:

@@ -511,12 +511,12 @@ class XmetroCore:
             if not (math.isfinite(max_tilt) and math.isfinite(max_turn)):
                 raise ServiceError("max_tilt / max_turn must be finite")
             rec = search(self.search_model, judged.context, rows, judged.features, judged.pose, self.scanner,
-                            judged.settings, cands or None, max_points=int(v["recommend_max_points"]),
-                            max_tilt=max_tilt, tilt_steps=int(v["recommend_tilt_steps"]), max_turn=max_turn,
-                            turn_steps=int(v["recommend_turn_steps"]),
-                            grazing_incidence_deg=v["grazing_incidence_deg"], grazing_view_deg=v["grazing_view_deg"],
-                            min_coverage=v["recommend_min_coverage"], max_seconds=v["recommend_max_seconds"],
-                            progress=progress, cancelled=cancelled, occluder=self._occluder(judged))
+                         judged.settings, cands or None, max_points=int(v["recommend_max_points"]),
+                         max_tilt=max_tilt, tilt_steps=int(v["recommend_tilt_steps"]), max_turn=max_turn,
+                         turn_steps=int(v["recommend_turn_steps"]),
+                         grazing_incidence_deg=v["grazing_incidence_deg"], grazing_view_deg=v["grazing_view_deg"],
+                         min_coverage=v["recommend_min_coverage"], max_seconds=v["recommend_max_seconds"],
+                         progress=progress, cancelled=cancelled, occluder=self._occluder(judged))
         except RecommendCancelled:
             raise
         except (ServiceError, ValueError) as e:
