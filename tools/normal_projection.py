@@ -14,13 +14,14 @@ outputs against the simulator's truth:
   (``Prepared.normals``, measured on the scan; no CAD). Σ_k |n_k|·U_k is U along the normal, as
   ``parts.cad_judge`` carries it.
 
-Scans: the parts study's seven parts as it presents them (seed 0, form error ±40 µm) and two spheres of the study's
-kind (R 27.5 and 17.5 mm), each at the study's three settings. Per scan and reading: the in-domain coverage per axis
-and along the true normal (|(actual − d)·N| ≤ Σ|N_k|·U_k), and the MAE of actual − d per axis (µm) next to the
-oracle's (expected − actual, the simulator's noise-free error). Points: the judge's rows with a finite d and U, less
-the injected outliers (the study counts every point with a finite d, so its published figures differ from these
-by up to 0.6 points). Writes ``OUT`` (default docs/results/parts/normal_projection.json) and prints a table; its
-figures are quoted in docs/parts-generalisation.md. About 6 minutes here.
+Scans: the parts study's seven parts as it presents them (seed 0, form error ±40 µm) and two spheres of the training
+campaign's sizes (Ø 55 and 35 mm: R 27.5 and 17.5, new scans), each at the study's three settings. Per scan and
+reading: the in-domain coverage per axis and along the true normal (|(actual − d)·N| ≤ Σ|N_k|·U_k), and the MAE of
+actual − d per axis (µm) next to the oracle's (expected − actual, the simulator's noise-free error). Points: the
+judge's rows with a finite d and U, less the injected outliers (the study counts every point with a finite d, so its
+published figures differ from these by up to 0.6 points). Writes ``OUT`` (default
+docs/results/parts/normal_projection.json) and prints a table; its figures are quoted in
+docs/parts-generalisation.md. About 6 minutes here.
 """
 
 from __future__ import annotations
