@@ -335,6 +335,39 @@ def block_parts_acceptance() -> str:
     return "\n".join(out) + "\n"
 
 
+def block_normal_projection() -> str:
+    """The per-axis readings of ``tools/normal_projection.py`` (``docs/results/parts/normal_projection.json``)."""
+    s = _load("docs/results/parts/normal_projection.json")
+    names = {"published": "published", "projected": "projected", "allowance": "projected + allowance",
+             "allowance_smoothed": "smoothed n + allowance", "noise_first": "U along n from the noise"}
+
+    def cells(r: dict) -> str:
+        return " / ".join(f"{100 * c:.1f}" for c in [*r["coverage_xyz"], r["coverage_normal"]])
+
+    out = ["| scan | settings | published: x / y / z / normal (%) | U along n from the noise: x / y / z / normal (%) "
+           "| the same, axes with \\|N_a\\| ≥ 0.05 (%) | MAE X / Y published → noise-first (µm) | median \\|N_x\\|, "
+           "\\|N_y\\| | n's median error (°) |", "|---|---|---|---|---|---|---|---|"]
+    for r in s["rows"]:
+        lat, d, e = r["settings"]
+        a, b = r["published"], r["noise_first"]
+        carry = " / ".join("—" if c is None else f"{100 * c:.1f}" for c in b["coverage_xyz_carrying"])
+        mae = " / ".join(f"{x:.2f} → {y:.2f}" for x, y in zip(a["mae_um"][:2], b["mae_um"][:2], strict=True))
+        tn = r["true_normal_median_abs"]
+        out.append(f"| {r['scan']} | {lat:g}/{d:g}/{e:g} | {cells(a)} | {cells(b)} | {carry} | {mae} | "
+                   f"{tn[0]:.4f}, {tn[1]:.4f} | {r['normal_error_median_deg']['judge']:.2f} |")
+    met = s["rows_met"]
+    counts = "; ".join(f"{names[k]} {v['parts']} + {v['spheres']} ({v['parts_carrying_axes']} + "
+                       f"{v['spheres_carrying_axes']})" for k, v in met.items())
+    mult = s["calibration"]["noise_multipliers"]
+    ms = [v for k, v in mult.items() if not k.endswith("none")]
+    out += ["", _para(
+        f"Rows with every axis and the normal in [93, 97] % in domain, of 21 part rows + 6 sphere rows (in brackets: "
+        f"counting an axis only on the points where |N_a| ≥ 0.05): {counts}. Noise multipliers {min(ms):.2f}-"
+        f"{max(ms):.2f} (per exposure × surface class, {s['calibration']['scans']} calibration scans). Source: "
+        "`docs/results/parts/normal_projection.json` (`python tools/normal_projection.py`).")]
+    return "\n".join(out) + "\n"
+
+
 def block_real_data() -> str:
     """The real profilometer, calibrated and scored (``docs/results/real_data/summary.json``)."""
     s = _load("docs/results/real_data/summary.json")
@@ -402,6 +435,7 @@ BLOCKS: dict[str, Callable[[], str]] = {
     "default-card": block_default_card,
     "parts": block_parts,
     "parts-acceptance": block_parts_acceptance,
+    "normal-projection": block_normal_projection,
     "real-data": block_real_data,
 }
 
