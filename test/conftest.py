@@ -29,6 +29,8 @@ def pytest_configure(config) -> None:
         os.execv(runner, [runner, sys.executable, "-m", "pytest", *config.invocation_params.args])
     apply_ros_env()
     fastdds_shm_clean()
+    global _PORTS_BEFORE
+    _PORTS_BEFORE = _port_segments()
     _warm_kernels()
 
 
@@ -36,6 +38,31 @@ def pytest_unconfigure(config) -> None:
     # The tests that SIGKILL a DDS process leave its 64 MB shared-memory segment behind (test_shm_clean.py); on a
     # machine that runs the suite again and again they would pile up in /dev/shm, holding its memory.
     fastdds_shm_clean()
+    remove_orphan_ports(_PORTS_BEFORE)
+
+
+_SHM = Path("/dev/shm")
+_PORTS_BEFORE: set[str] = set()
+
+
+def _port_segments(shm: Path = _SHM) -> set[str]:
+    """Names of the Fast DDS port segments in ``shm`` (``fastdds_port<N>``, not their lock files)."""
+    return {p.name for p in shm.glob("fastdds_port*") if p.name[len("fastdds_port"):].isdigit()}
+
+
+def remove_orphan_ports(before: set[str], shm: Path = _SHM) -> list[str]:
+    """Remove the port segments this session created that no process listens on: no ``_el`` / ``_sl`` lock file
+    (a listening port always has one). ``fastdds shm clean`` finds ports only through those lock files, so a
+    segment re-created by a sender after its listener was SIGKILLed (test_bag_recorder.py) would stay for good.
+    Returns the names removed."""
+    removed = []
+    for name in sorted(_port_segments(shm) - before):
+        if (shm / f"{name}_el").exists() or (shm / f"{name}_sl").exists():
+            continue
+        for f in (shm / name, shm / f"sem.{name}_mutex"):
+            f.unlink(missing_ok=True)
+        removed.append(name)
+    return removed
 
 
 def fastdds_shm_clean(check: bool = False) -> str:

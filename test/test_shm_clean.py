@@ -13,7 +13,7 @@ import os
 import signal
 from pathlib import Path
 
-from conftest import fastdds_shm_clean
+from conftest import _port_segments, fastdds_shm_clean, remove_orphan_ports
 
 from xmetro_ros.ros.rclpy_util import NodeProcess, NodeSpinner
 
@@ -43,3 +43,16 @@ def test_a_killed_nodes_segment_stays_until_fastdds_shm_clean() -> None:
         left = big_segments()
         assert not killed & left, report
         assert live <= left, f"the cleaner removed a live participant's segment: {report}"
+
+
+def test_orphan_port_segments_of_the_session_are_removed(tmp_path: Path) -> None:
+    """A port segment the session created with no listener's lock file goes, with its mutex; one that was there
+    before, or that a live listener holds (its ``_el`` lock file), stays."""
+    for name in ("fastdds_port1", "fastdds_port2", "sem.fastdds_port2_mutex", "fastdds_port3", "fastdds_port3_el",
+                 "fastdds_port3_sl"):
+        (tmp_path / name).write_bytes(b"")
+    before = {"fastdds_port1"}
+    assert _port_segments(tmp_path) == {"fastdds_port1", "fastdds_port2", "fastdds_port3"}
+    assert remove_orphan_ports(before, tmp_path) == ["fastdds_port2"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fastdds_port1", "fastdds_port3", "fastdds_port3_el",
+                                                          "fastdds_port3_sl"]
