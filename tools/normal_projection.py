@@ -51,6 +51,7 @@ from xmetro_ros.judge.conditions import exposure_edges
 from xmetro_ros.judge.inference import ModelSet
 from xmetro_ros.judge.scan_handler import ScanHandler
 from xmetro_ros.judge.surface_class import SURFACE_CLASSES
+from xmetro_ros.learn.uncertainty import conformal_multiplier
 from xmetro_ros.parts.study import DEFAULT_PARTS, DEFAULT_SETTINGS, FORM_UM, PRESENTATION
 from xmetro_ros.scan.artifacts import Sphere
 from xmetro_ros.scan.calibration_surfaces import surface_campaign
@@ -121,8 +122,9 @@ def judge(h: ScanHandler, man: Any, settings: ScanSettings, seed: int = 0, rows:
 
 
 def _conformal(v: np.ndarray) -> float:
-    """The LEVEL quantile of the scores ``v`` at the finite-sample rank ⌈(n + 1)·LEVEL⌉ (split conformal)."""
-    return float(np.quantile(v, min(1.0, np.ceil((len(v) + 1) * LEVEL) / len(v)), method="higher"))
+    """The LEVEL split-conformal quantile of the scores ``v`` (rank ⌈(n + 1)·LEVEL⌉), through the product's own
+    crepes wrapper so the tool and the card agree on the rank."""
+    return conformal_multiplier(np.asarray(v, np.float64).ravel(), np.ones(np.size(v)), LEVEL)
 
 
 def needed_theta(r: dict[str, np.ndarray], n: np.ndarray, un: np.ndarray) -> np.ndarray:
