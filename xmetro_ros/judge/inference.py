@@ -495,6 +495,14 @@ class ModelSet:
         return bool((self._by_surface_block or {}).get("noise"))
 
     @cached_property
+    def along_normal(self) -> Any:
+        """The card's d and U along the measured normal (:class:`.along_normal.AlongNormal`), None when it has none:
+        the judge then carries each row's d and U onto its normal (:meth:`ScanHandler.process`)."""
+        from .along_normal import AlongNormal
+
+        return AlongNormal.from_card(self.card)
+
+    @cached_property
     def _normal_columns(self) -> list[int]:
         """Columns of the unit normal (N_x, N_y, N_z) in the feature rows."""
         names = list(self.feature_names)
