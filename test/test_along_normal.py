@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from xmetro_ros.judge.along_normal import AlongNormal
-from xmetro_ros.learn.along_normal import conformal_quantile, fit
+from xmetro_ros.learn.along_normal import fit
 
 EDGES = np.array([0.2236, 1.0])
 
@@ -88,9 +88,3 @@ def test_allowance_covers_a_measured_normal_that_is_off() -> None:
     dp0, Up0 = none.apply(r["d"], np.zeros((30000, 3)), r["n"], r["noise"], r["cls"], 0.5, 0.1)
     cov0 = (np.abs(r["actual"] - dp0) <= Up0).mean(axis=0)
     assert (cov0[:2] < cov[:2] - 0.01).all() and (cov0[:2] < 0.94).all(), (cov0, cov)  # X, Y: N mostly near Z
-
-
-def test_conformal_quantile_rank() -> None:
-    v = np.arange(1.0, 20.0)  # 19 scores: rank ⌈20·0.95⌉ = 19
-    assert conformal_quantile(v, 0.95) == 19.0
-    assert conformal_quantile(v[:10], 0.95) == float("inf")  # ⌈11·0.95⌉ = 11 > 10

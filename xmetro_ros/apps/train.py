@@ -56,6 +56,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="calibrate on the campaign's shapes only (cards up to 0.7.2)")
     e.add_argument("--add-surfaces", action="store_true",
                    help="keep the card's calibration; add the surfaces' per-class U and shape domain")
+    e.add_argument("--along-normal", action="store_true",
+                   help="calibrate d and U along the measured normal too (card uncertainty.along_normal)")
     e.add_argument("--cover-sources", action="store_true",
                    help="per-class cells cover each sigma source's rows on their own (models/posed)")
     e.set_defaults(func=run_export_default)
@@ -120,7 +122,7 @@ CALIBRATION_POINTS_PER_CLOUD = 2000
 
 
 def _calibrate_default(model_dir: Path, profile: str, seed: int, surfaces: bool = True,
-                       keep_calibration: bool = False, by_source: bool = False) -> None:
+                       keep_calibration: bool = False, by_source: bool = False, along_normal: bool = False) -> None:
     """Split-conformal calibration of the default model set on clouds it never saw: the profile's campaign
     simulated again with seed + CALIBRATION_SEED_OFFSET (same artifacts, settings and head poses, new clouds) and,
     with ``surfaces``, the calibration surfaces (plates, grooves, a saddle, a filleted ridge at many tilts:
@@ -134,7 +136,8 @@ def _calibrate_default(model_dir: Path, profile: str, seed: int, surfaces: bool 
     multivariate domain (the recommender's U and domain: its figures do not move) and gains the per-class block
     (``uncertainty.conditional.by_surface``) and the shape domain; ValueError when the card's conditions are not
     those the new block is laid out on. ``by_source``: the per-class multipliers cover each σ source's rows on
-    their own (learn/uncertainty.py ``conditional_multipliers``)."""
+    their own (learn/uncertainty.py ``conditional_multipliers``). ``along_normal`` (with ``surfaces``): the card's U
+    also gets the ``along_normal`` block (judge/along_normal.py: d and U carried onto the measured normal)."""
     import numpy as np
 
     from ..judge.features import STUDY_FEATURES
@@ -149,6 +152,9 @@ def _calibrate_default(model_dir: Path, profile: str, seed: int, surfaces: bool 
 
     if keep_calibration and not surfaces:
         raise ValueError("keeping the card's calibration adds the surfaces' blocks: it needs the surfaces")
+    if along_normal and not surfaces:
+        raise ValueError("U along the normal is calibrated per surface class on the measured noise: it needs the "
+                         "surfaces")
     prof = get_profile(profile)
     cal_seed = seed + CALIBRATION_SEED_OFFSET
     items = study_campaign(seed=cal_seed, **dict(prof.campaign))
@@ -179,7 +185,7 @@ def _calibrate_default(model_dir: Path, profile: str, seed: int, surfaces: bool 
               for i, c in enumerate(t.clouds[: len(items)])] + labels
     block = calibrate(model_dir, t.X, t.y, t.cloud_id, cloud_labels=labels, write=not keep_calibration,
                       surface_class=cs.surface_class if surfaces else None, noise=cs.noise if surfaces else None,
-                      by_source=by_source)
+                      by_source=by_source, along_normal=along_normal)
     shape = fit_shape_domain(cs.mean_curvature)
     extra: dict[str, Any] = {}
     if surfaces:
@@ -187,6 +193,8 @@ def _calibrate_default(model_dir: Path, profile: str, seed: int, surfaces: bool 
     if keep_calibration:  # calibrate wrote nothing: the card still holds its own block
         card = json.loads((Path(model_dir) / "card.json").read_text())
         extra["uncertainty"] = _with_surface_block(card.get("uncertainty"), block, labels)
+        if "along_normal" in block:
+            extra["uncertainty"]["along_normal"] = block["along_normal"]
     elif surfaces:
         # U is calibrated on these rows without any widening: the multivariate domain (where U is widened and the
         # point flagged) is theirs, the training campaign's shapes and the surfaces', not the training rows' alone
@@ -254,7 +262,8 @@ def run_export_default(args: argparse.Namespace) -> int:
         if not args.no_calibrate:
             try:
                 _calibrate_default(src, args.profile, args.seed, surfaces=not args.no_surfaces,
-                                   keep_calibration=args.add_surfaces, by_source=args.cover_sources)
+                                   keep_calibration=args.add_surfaces, by_source=args.cover_sources,
+                                   along_normal=args.along_normal)
             except ValueError as e:
                 print(f"xmetro export-default: error: {e}", file=sys.stderr)
                 return 2

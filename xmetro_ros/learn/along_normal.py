@@ -2,8 +2,8 @@
 
 Split-conformal, on calibration rows the model never trained on:
 
-- m per exposure level × surface class: the ``level`` quantile (finite-sample rank ⌈(n + 1)·level⌉) of
-  |(actual − d)·n| / σ over the rows with a measured noise σ;
+- m per exposure level × surface class: the ``level`` quantile (finite-sample rank ⌈(n + 1)·level⌉, crepes through
+  :func:`.uncertainty.conformal_multiplier`) of |(actual − d)·n| / σ over the rows with a measured noise σ;
 - c per surface class: the same quantile of the θ / (σ/h) each row and axis needs for |actual − d'|_a ≤ U'_a with
   U_n = m·σ, pooled over the axes (0 where U_n·|n_a| already covers it).
 
@@ -15,17 +15,12 @@ from __future__ import annotations
 import numpy as np
 
 from ..judge.along_normal import AlongNormal
+from ..judge.measured_noise import NORMAL_FEATURES
+from .uncertainty import conformal_multiplier
 
-__all__ = ["MIN_ROWS", "conformal_quantile", "fit"]
+__all__ = ["MIN_ROWS", "fit", "fit_rows"]
 
 MIN_ROWS = 200
-
-
-def conformal_quantile(scores: np.ndarray, level: float) -> float:
-    """The split-conformal quantile of ``scores``: the ⌈(n + 1)·level⌉-th smallest (inf when that rank exceeds n)."""
-    v = np.sort(np.asarray(scores, np.float64).reshape(-1))
-    k = int(np.ceil((len(v) + 1) * level))
-    return float(v[k - 1]) if k <= len(v) else float("inf")
 
 
 def fit(d: np.ndarray, actual: np.ndarray, normals: np.ndarray, noise: np.ndarray, surface_class: np.ndarray,
@@ -51,7 +46,7 @@ def fit(d: np.ndarray, actual: np.ndarray, normals: np.ndarray, noise: np.ndarra
         for k in range(n_classes):
             g = ok & (lvl == a) & (cls == k)
             if g.sum() >= min_rows:
-                mult[a, k] = conformal_quantile(rn[g], level)
+                mult[a, k] = conformal_multiplier(rn[g], np.ones(int(g.sum())), level)
     # the θ each row and axis needs for |actual − d'|_a ≤ U_n·√(n_a² + θ²(1 − n_a²)), U_n = m·σ, d' = (d·n)·n
     m_row = mult[lvl.clip(0, len(edges)), np.where(ok, cls, 0)]
     un = m_row * sigma
@@ -64,5 +59,18 @@ def fit(d: np.ndarray, actual: np.ndarray, normals: np.ndarray, noise: np.ndarra
     for k in range(n_classes):
         g = ok_c & (cls == k)
         if g.sum() >= min_rows:
-            allowance[k] = conformal_quantile(need[g].reshape(-1), level)
+            v = need[g].reshape(-1)
+            allowance[k] = conformal_multiplier(v, np.ones(len(v)), level)
     return AlongNormal(edges, mult, allowance, float(level))
+
+
+def fit_rows(X: np.ndarray, names: list[str], y: np.ndarray, pred: np.ndarray, surface_class: np.ndarray,
+             noise: np.ndarray, exposure_edges: np.ndarray, n_classes: int, level: float = 0.95) -> AlongNormal:
+    """:func:`fit` on feature rows X (M, F) named ``names`` (the normal N_x, N_y, N_z, ``exposure_time`` and the
+    two densities give n, the exposure and h = 1 / min(densities)), targets ``y`` and the model's predictions
+    ``pred`` (M, 3) mm in the same sign."""
+    X = np.asarray(X, np.float64)
+    col = {c: names.index(c) for c in (*NORMAL_FEATURES, "exposure_time", "lateral_density", "direction_density")}
+    spacing = 1.0 / np.minimum(X[:, col["lateral_density"]], X[:, col["direction_density"]])
+    return fit(pred, y, X[:, [col[c] for c in NORMAL_FEATURES]], noise, surface_class, X[:, col["exposure_time"]],
+               spacing, exposure_edges, n_classes, level)
