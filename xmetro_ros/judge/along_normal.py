@@ -22,7 +22,13 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["AlongNormal"]
+__all__ = ["AlongNormal", "AlongNormalRows", "grid_spacing_mm"]
+
+
+def grid_spacing_mm(settings: Any) -> float:
+    """h (mm): the coarser of a scan's two grid spacings, from its ``lateral_density`` and ``direction_density``
+    (points/mm)."""
+    return 1.0 / min(float(settings.lateral_density), float(settings.direction_density))
 
 
 @dataclass(frozen=True)
@@ -70,23 +76,54 @@ class AlongNormal:
         k = np.where(ok, cls, 0)
         return (np.where(ok, self.multipliers[level, k], np.nan), np.where(ok, self.allowance[k], np.nan))
 
-    def apply(self, d: np.ndarray, U: np.ndarray, normals: np.ndarray, noise: np.ndarray,
-              surface_class: np.ndarray, exposure_ms: float, spacing_mm: float) -> tuple[np.ndarray, np.ndarray]:
-        """(d', U') (M, 3) mm for the rows with d, U (M, 3) mm, their unit ``normals`` (M, 3), measured ``noise``
-        (M,) mm (NaN: none), surface classes (M,), the scan's exposure (ms) and coarser grid spacing (mm); a row
-        without a noise, a calibrated factor or a finite d and U keeps its d and U."""
-        d = np.asarray(d, np.float64)
-        U = np.asarray(U, np.float64)
+    def rows(self, normals: np.ndarray, noise: np.ndarray, surface_class: np.ndarray, exposure_ms: float,
+             spacing_mm: float, widen: np.ndarray | None = None) -> AlongNormalRows:
+        """What this block does to M rows: their unit ``normals`` (M, 3) (the features N_x, N_y, N_z), measured
+        ``noise`` (M,) mm (NaN: none), surface classes (M,), the scan's exposure (ms), its coarser grid spacing (mm)
+        and ``widen`` (M,) the factor the model's U took outside the multivariate domain (max(1, distance);
+        None: 1), which U' takes too."""
         n = np.asarray(normals, np.float64)
         n = n / np.linalg.norm(n, axis=1, keepdims=True)
         sigma = np.asarray(noise, np.float64).reshape(-1)
         m, c = self.factors(surface_class, exposure_ms)
-        use = (np.isfinite(sigma) & (sigma > 0) & np.isfinite(m) & np.isfinite(c) & np.isfinite(n).all(axis=1)
-               & np.isfinite(d).all(axis=1) & np.isfinite(U).all(axis=1))
-        un = m * sigma
+        use = np.isfinite(sigma) & (sigma > 0) & np.isfinite(m) & np.isfinite(c) & np.isfinite(n).all(axis=1)
         theta = c * sigma / float(spacing_mm)
-        w = np.sqrt(n**2 + (theta**2)[:, None] * (1.0 - n**2))
-        dn = np.einsum("ij,ij->i", d, n)
-        d_out = np.where(use[:, None], dn[:, None] * n, d)
-        U_out = np.where(use[:, None], un[:, None] * w, U)
-        return d_out, U_out
+        un = m * sigma
+        if widen is not None:
+            w = np.asarray(widen, np.float64).reshape(-1)
+            un = un * np.where(np.isfinite(w), np.maximum(w, 1.0), 1.0)
+        U = un[:, None] * np.sqrt(n**2 + (theta**2)[:, None] * (1.0 - n**2))
+        return AlongNormalRows(use=use, normals=np.where(use[:, None], n, 0.0), U=np.where(use[:, None], U, np.nan))
+
+    def apply(self, d: np.ndarray, U: np.ndarray, normals: np.ndarray, noise: np.ndarray,
+              surface_class: np.ndarray, exposure_ms: float, spacing_mm: float,
+              widen: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(d', U') (M, 3) mm for the rows with d, U (M, 3) mm and what :meth:`rows` takes; a row without a noise, a
+        calibrated factor or a finite d and U keeps its d and U."""
+        r = self.rows(normals, noise, surface_class, exposure_ms, spacing_mm, widen)
+        return r.carry(d, "error"), r.carry(U, "uncertainty")
+
+
+@dataclass(frozen=True)
+class AlongNormalRows:
+    """The block applied to M rows: ``use`` (M,) bool the rows it changes, ``normals`` (M, 3) their unit normals,
+    ``U`` (M, 3) mm their U' (NaN where not used). The judge and the explainer carry outputs with the same rows."""
+
+    use: np.ndarray
+    normals: np.ndarray
+    U: np.ndarray
+
+    def carry(self, y: np.ndarray, output: str) -> np.ndarray:
+        """Outputs y (..., M, 3) mm of these rows as published: "error" → (y·n)·n, "uncertainty" → U' on the used
+        rows whose y is finite; the rest unchanged."""
+        y = np.asarray(y, np.float64)
+        use = self.use & np.isfinite(y).all(axis=-1)
+        if output == "error":
+            out = np.einsum("...ij,ij->...i", y, self.normals)[..., None] * self.normals
+        else:
+            out = np.broadcast_to(self.U, y.shape)
+        return np.where(use[..., None], out, y)
+
+    def take(self, rows: np.ndarray) -> AlongNormalRows:
+        """These rows' subset ``rows`` (indices)."""
+        return AlongNormalRows(self.use[rows], self.normals[rows], self.U[rows])

@@ -20,20 +20,32 @@ With a card calibrated per surface class, U's multiplier depends on each point's
 not a feature). Explaining U with the classes adds the player :data:`SURFACE_CLASS`: off, a point takes the
 all-class multiplier (so the base stays the same for every point), on, its own class's; its share says how much the
 point's shape moves its U, and base + Σ SHAP equals the published U.
+
+With a card that carries d and U onto the measured normal (:mod:`.along_normal`), the published outputs of the rows
+it changes are d' = (d·n)·n and U' = U_n(noise)·(…); explaining them adds the player :data:`ALONG_NORMAL`: off, the
+model's d or U; on, the point's published d' or U'. The base stays the same for every point, base + Σ SHAP equals
+the published output, and the player's share says how much carrying onto the normal moved it (for U', whose value
+no feature moves, the features share only what the model's U would have been).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-__all__ = ["OUTPUTS", "SET_CONTEXT", "SURFACE_CLASS", "ShapResult", "explain", "explain_in_cloud", "global_ranking"]
+if TYPE_CHECKING:
+    from .along_normal import AlongNormalRows
+
+__all__ = ["ALONG_NORMAL", "OUTPUTS", "SET_CONTEXT", "SURFACE_CLASS", "ShapResult", "explain", "explain_in_cloud", "global_ranking"]
 
 # Name of the extra player of :func:`explain_in_cloud` for set models: the other points of the point's set.
 SET_CONTEXT = "set_context"
 # Name of the player of an explanation of U with surface classes: the point's class (off: the all-class multiplier).
 SURFACE_CLASS = "surface_class"
+# Name of the player of an explanation with a card's along-normal block: the point carried onto its normal.
+ALONG_NORMAL = "along_normal"
 #: What can be explained: the predicted error, or its expanded uncertainty U.
 OUTPUTS = ("error", "uncertainty")
 
@@ -64,6 +76,7 @@ def explain(
     output: str = "error",
     surface_class: np.ndarray | None = None,
     noise: np.ndarray | None = None,
+    along: AlongNormalRows | None = None,
 ) -> ShapResult:
     """SHAP values of ``model_set`` (a :class:`~xmetro_ros.judge.inference.ModelSet`) for the rows X (P, F).
 
@@ -71,7 +84,8 @@ def explain(
     uncertain; needs a calibrated model set). Additivity holds for either. ``surface_class`` (P,): with "uncertainty",
     each row's surface class, a player of its own (:data:`SURFACE_CLASS`, module doc; None: the all-class U);
     ``noise`` (P,) mm: each row's measured noise, switched on and off with the class (the card's U takes both
-    together, :mod:`.measured_noise`).
+    together, :mod:`.measured_noise`). ``along``: the card's along-normal block applied to the P rows
+    (``ModelSet.along_normal_rows``), a player of its own (:data:`ALONG_NORMAL`; None: the model's outputs).
 
     background: (B, F) reference rows (None → the card's stored background, else the column medians of X);
     at most ``max_background`` rows are used (evenly spaced). ``n_permutations`` is rounded up to an even number
@@ -83,8 +97,10 @@ def explain(
     bg = _background(model_set, X, background, max_background)
     P, B, F = len(X), len(bg), X.shape[1]
     cls = None if surface_class is None or output != "uncertainty" else np.asarray(surface_class).reshape(P)
-    players = F + (cls is not None)  # the features, then the surface class
+    i_an = F + (cls is not None) if along is not None else -1
+    players = F + (cls is not None) + (along is not None)  # the features, the surface class, the along-normal
     perms = _permutations(players, n_permutations, seed)
+    state_an = np.zeros((len(perms), players + 1), bool)
     # states[j, b, s] : coalition after s switches of permutation j from background b to x.
     states = np.empty((len(perms), B, players + 1, P, F), np.float32)
     state_cls = np.full((len(perms), players + 1, P), -1, np.int8)  # −1: the all-class multiplier
@@ -96,6 +112,8 @@ def explain(
         for s, k in enumerate(perm, start=1):
             if k < F:
                 cur[:, :, k] = X[None, :, k]
+            elif k == i_an:
+                state_an[j, s:] = True
             else:
                 state_cls[j, s:] = cls
                 if nz is not None:
@@ -106,9 +124,12 @@ def explain(
     if nz is not None:
         kw["noise"] = np.broadcast_to(state_nz[:, None], (len(perms), B, players + 1, P)).reshape(-1, P)
     pred = model_set.predict_batch(states.reshape(-1, P, F), output=output, **kw)
-    pred = pred.reshape(len(perms), B, players + 1, P, 3)[..., axes]
-    names = list(model_set.feature_names) + ([SURFACE_CLASS] if cls is not None else [])
-    return _shapley(pred, perms, names, axes)
+    pred = pred.reshape(len(perms), B, players + 1, P, 3)
+    if along is not None:
+        pred = np.where(state_an[:, None, :, None, None], along.carry(pred, output), pred)
+    names = (list(model_set.feature_names) + ([SURFACE_CLASS] if cls is not None else [])
+             + ([ALONG_NORMAL] if along is not None else []))
+    return _shapley(pred[..., axes], perms, names, axes)
 
 
 def explain_in_cloud(
@@ -124,6 +145,7 @@ def explain_in_cloud(
     output: str = "error",
     surface_class: np.ndarray | None = None,
     noise: np.ndarray | None = None,
+    along: AlongNormalRows | None = None,
 ) -> ShapResult:
     """SHAP values of the published predictions of ``rows`` of a cloud (see the module docstring).
 
@@ -133,6 +155,8 @@ def explain_in_cloud(
     bad shapes, non-finite rows, rows out of range or unknown axes. ``output``: as :func:`explain` (with
     "uncertainty", base + Σ SHAP equals the published U: give ``surface_class`` (M,), the classes the judge gave
     the cloud's rows, when the card is calibrated per class, and ``noise`` (M,), the measured noise its U took).
+    ``along``: the card's along-normal block applied to the cloud's M rows (``ModelSet.along_normal_rows``), whose
+    published outputs it changed (player :data:`ALONG_NORMAL`).
     """
     _check_output(output)
     X_cloud = np.asarray(X_cloud, np.float32)
@@ -151,10 +175,14 @@ def explain_in_cloud(
         nz = np.asarray(noise, np.float64).reshape(-1)
         if len(nz) != len(X_cloud):
             raise ValueError(f"explain: {len(nz)} noise scales for a cloud of {len(X_cloud)} rows")
+    if along is not None and len(along.use) != len(X_cloud):
+        raise ValueError(f"explain: along-normal rows for {len(along.use)} rows, a cloud of {len(X_cloud)}")
+    own_an = None if along is None else along.take(rows)
     if not model_set.has_sets:
         return explain(model_set, X_cloud[rows], background, axes=axes, n_permutations=n_permutations,
                        max_background=max_background, seed=seed, output=output,
-                       surface_class=None if cls is None else cls[rows], noise=None if nz is None else nz[rows])
+                       surface_class=None if cls is None else cls[rows], noise=None if nz is None else nz[rows],
+                       along=own_an)
     if not np.all(np.isfinite(X_cloud)):
         raise ValueError("explain: the cloud has non-finite features (predict leaves them out of every set)")
     X = _check_rows(model_set, X_cloud[rows], axes)
@@ -166,7 +194,7 @@ def explain_in_cloud(
     members = idx[set_of[rows]]  # (P, n) cloud rows of each explained point's set (padding repeats members)
     is_self = members == rows[:, None]  # where the point itself sits (more than once if padded with itself)
     first = is_self.argmax(axis=1)
-    players = F + 1 + (cls is not None)  # F features, the set context, then the surface class
+    players = F + 1 + (cls is not None) + (along is not None)  # features, set context, surface class, along-normal
     perms = _permutations(players, n_permutations, seed)
     steps = players + 1
     budget_b = max(1, int(max_set_rows) // max(1, P * len(perms) * steps * n))
@@ -202,8 +230,13 @@ def explain_in_cloud(
                 sv = np.where(on[:, :, F + 1][:, :, None], own_nz[c][None, None, :], np.nan)
                 sn = np.broadcast_to(sv[:, None, :, :, None], (J, B, steps, pc, n)).reshape(-1, n)
             y = model_set.predict_sets_uncertainty(sets.reshape(-1, n, F), sc, sn).reshape(J, B, steps, pc, n, 3)
-        pred[:, :, :, c] = y[:, :, :, np.arange(pc), first[c]][..., axes]
-    names = [*list(model_set.feature_names), SET_CONTEXT] + ([SURFACE_CLASS] if cls is not None else [])
+        yc = y[:, :, :, np.arange(pc), first[c]]  # (J, B, steps, pc, 3)
+        if own_an is not None:  # the point's published d' / U' once its player is on (the last one)
+            an_on = on[:, :, players - 1][:, None, :, None, None]
+            yc = np.where(an_on, own_an.take(np.arange(c.start, c.stop)).carry(yc, output), yc)
+        pred[:, :, :, c] = yc[..., axes]
+    names = ([*list(model_set.feature_names), SET_CONTEXT] + ([SURFACE_CLASS] if cls is not None else [])
+             + ([ALONG_NORMAL] if along is not None else []))
     return _shapley(pred, perms, names, axes)
 
 

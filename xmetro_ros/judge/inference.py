@@ -502,6 +502,22 @@ class ModelSet:
 
         return AlongNormal.from_card(self.card)
 
+    def along_normal_rows(self, X: np.ndarray, surface_class: np.ndarray | None, noise: np.ndarray | None,
+                          settings: Any, domain_distance: np.ndarray | None = None) -> Any:
+        """What the card's :attr:`along_normal` block does to the feature rows X (M, F) of one scan taken with
+        ``settings`` (:class:`.along_normal.AlongNormalRows`), with the rows' surface classes and measured noise (mm)
+        and their multivariate domain distance (None: computed): the normals are the features N_x, N_y, N_z. None
+        when the card has no block or the scan no classes or noise. The judge and the explainer both use it."""
+        an = self.along_normal
+        if an is None or surface_class is None or noise is None:
+            return None
+        from .along_normal import grid_spacing_mm
+
+        X = np.asarray(X)
+        dist = self.domain_distance(X) if domain_distance is None else domain_distance
+        return an.rows(X[:, self._normal_columns], noise, surface_class, float(settings.exposure_ms),
+                       grid_spacing_mm(settings), dist)
+
     @cached_property
     def _normal_columns(self) -> list[int]:
         """Columns of the unit normal (N_x, N_y, N_z) in the feature rows."""

@@ -461,12 +461,10 @@ class ScanHandler:
             U = np.asarray(up.U, dtype=np.float64)
             if model.card.get("domain_mv"):  # (U is widened from distance 1 on, whatever the margin)
                 mv_ood = model.out_of_domain_mv(X, up.domain_distance, margin=p.domain_margin)
-            along = getattr(model, "along_normal", None)
-            if along is not None and noise is not None and surf is not None:
+            along = model.along_normal_rows(X, surf, noise, scan.settings, up.domain_distance)
+            if along is not None:
                 # d and U carried onto the measured normal, U along it from the scan's noise (judge/along_normal.py)
-                st = scan.settings
-                pred, U = along.apply(pred, U, prepared.normals, noise, surf, float(st.exposure_ms),
-                                      1.0 / min(float(st.lateral_density), float(st.direction_density)))
+                pred, U = along.carry(pred, "error"), along.carry(U, "uncertainty")
         else:
             pred = np.asarray(model.predict(X), dtype=np.float64)
             U = np.full_like(pred, np.nan)

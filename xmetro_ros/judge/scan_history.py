@@ -171,12 +171,13 @@ def explain_rows(model_set: Any, judged: JudgedScan, rows: np.ndarray, axes: tup
     value is how many distinct other points that set holds) when the model has a set member
     (``attribution.explain_in_cloud``), plus ``surface_class`` (its value: the point's class index) when U is
     explained for a card calibrated per class (the player also carries the point's measured noise where the card's
-    U takes it: both switch on together).
+    U takes it: both switch on together), plus ``along_normal`` (its value: 1 where the card's along-normal block
+    carried the point's d and U onto its measured normal, :mod:`.along_normal`) when the card has that block.
 
     ``output="uncertainty"`` explains the published expanded uncertainty U instead of the error (which features
     make a point uncertain): predictions = base + Σ SHAP = U. ServiceError when the model set has no calibration.
     """
-    from .attribution import SET_CONTEXT, SURFACE_CLASS, explain_in_cloud
+    from .attribution import ALONG_NORMAL, SET_CONTEXT, SURFACE_CLASS, explain_in_cloud
 
     feats = judged.features
     finite = np.isfinite(feats).all(axis=1)
@@ -186,9 +187,12 @@ def explain_rows(model_set: Any, judged: JudgedScan, rows: np.ndarray, axes: tup
         raise ServiceError(f"model set {getattr(model_set, 'id', '?')!r} has no uncertainty calibration: "
                            "no U to explain")
     surf, noise = judged.surface_class, judged.noise
+    surf_f = None if surf is None else np.asarray(surf)[finite]
+    noise_f = None if noise is None else np.asarray(noise)[finite]
+    along_rows = getattr(model_set, "along_normal_rows", None)
+    along = None if along_rows is None else along_rows(feats[finite], surf_f, noise_f, judged.settings)
     res = explain_in_cloud(model_set, feats[finite], cloud_row[rows], None, axes=axes, output=output,
-                           surface_class=None if surf is None else np.asarray(surf)[finite],
-                           noise=None if noise is None else np.asarray(noise)[finite])
+                           surface_class=surf_f, noise=noise_f, along=along)
     X = feats[rows].astype(np.float64)
     names = list(model_set.feature_names)
     units = list(model_set.feature_units)
@@ -200,10 +204,14 @@ def explain_rows(model_set: Any, judged: JudgedScan, rows: np.ndarray, axes: tup
         X = np.column_stack([X, sizes[set_of[cloud_row[rows]]] - 1.0])
         names.append(SET_CONTEXT)
         units.append("points")
-    if res.feature_names[-1] == SURFACE_CLASS:  # U explained with the points' classes: the class is a player
+    if SURFACE_CLASS in res.feature_names:  # U explained with the points' classes: the class is a player
         X = np.column_stack([X, np.asarray(surf)[rows].astype(np.float64)])
         names.append(SURFACE_CLASS)
         units.append("class index (judge/surface_class.py; -1 none)")
+    if along is not None:  # the card carries d and U onto the normal: its own player, last
+        X = np.column_stack([X, along.use[cloud_row[rows]].astype(np.float64)])
+        names.append(ALONG_NORMAL)
+        units.append("1: carried onto the measured normal (judge/along_normal.py), 0: the model's output")
     shap_vals = np.asarray(res.shap, dtype=np.float64)
     return {
         "base_values": np.asarray(res.base_values, dtype=np.float64),
