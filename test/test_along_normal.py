@@ -122,12 +122,13 @@ def bowl_judged():
 def test_judge_publishes_d_and_U_along_the_normal(bowl_judged) -> None:
     """Rows with a measured noise and a class get d' = (d·n)·n and U' = 2σ·√(n_a² + θ²(1 − n_a²))·max(1, dist)
     (n: the features' normal); the rest keep the model's d and U; nothing else of the judgement moves."""
-    ms, an, res, plain = bowl_judged
+    ms, _, res, plain = bowl_judged
     X = res.features
     n = X[:, ms._normal_columns].astype(np.float64)
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     sigma = np.asarray(res.noise)
-    used = np.isfinite(sigma) & (sigma > 0) & (np.asarray(res.surface_class) >= 0) & np.isfinite(plain.predictions).all(1)
+    used = (np.isfinite(sigma) & (sigma > 0) & (np.asarray(res.surface_class) >= 0)
+            & np.isfinite(plain.predictions).all(axis=1))
     assert used.mean() > 0.8 and (~used).any()
     np.testing.assert_array_equal(res.predictions[~used], plain.predictions[~used])
     np.testing.assert_array_equal(res.row_uncertainty[~used], plain.row_uncertainty[~used])

@@ -368,6 +368,39 @@ def block_normal_projection() -> str:
     return "\n".join(out) + "\n"
 
 
+def block_along_normal_study() -> str:
+    """The parts study judged with an along-normal card (``docs/results/parts/along_normal/summary.json``) next to
+    the shipped card's (``docs/results/parts/summary.json``)."""
+    base, an = _load("docs/results/parts/summary.json"), _load("docs/results/parts/along_normal/summary.json")
+
+    def cov(r: dict) -> list[float]:
+        return [*r["coverage_in_domain_xyz"], r["normal_coverage_in_domain"]]
+
+    out = ["| part | settings | shipped card: x / y / z / normal (%) | with the block: x / y / z / normal (%) | "
+           "verdict shipped → block |", "|---|---|---|---|---|"]
+    met = [0, 0]
+    normal = []
+    for part, runs in an["parts"].items():
+        for r, r0 in zip(runs, base["parts"][part], strict=True):
+            lat, d, e = r["settings"]
+            cells = []
+            for k, x in enumerate((r0, r)):
+                c = cov(x)
+                ok = all(0.93 <= v <= 0.97 for v in c)
+                met[k] += ok
+                cells.append(" / ".join(f"{100 * v:.1f}" for v in c) + (" ✓" if ok else ""))
+            normal.append(r["normal_coverage_in_domain"])
+            out.append(f"| {part} | {lat:g}/{d:g}/{e:g} | {cells[0]} | {cells[1]} | {r0['verdict']} → {r['verdict']} |")
+    n = len(normal)
+    out += ["", _para(
+        f"In domain; ✓: every axis and the normal in [93, 97] %. Met on {met[0]} of {n} rows with the shipped card, "
+        f"{met[1]} of {n} with the block; along the normal the block covers {100 * min(normal):.1f}-"
+        f"{100 * max(normal):.1f} % on every row. Sources: `docs/results/parts/along_normal/summary.json` "
+        "(`xmetro parts study docs/results/parts/along_normal --model DIR --no-plots`, DIR from `xmetro "
+        "export-default --from-packaged --add-surfaces --along-normal --out DIR`) and `docs/results/parts/summary.json`.")]
+    return "\n".join(out) + "\n"
+
+
 def block_real_data() -> str:
     """The real profilometer, calibrated and scored (``docs/results/real_data/summary.json``)."""
     s = _load("docs/results/real_data/summary.json")
@@ -436,6 +469,7 @@ BLOCKS: dict[str, Callable[[], str]] = {
     "parts": block_parts,
     "parts-acceptance": block_parts_acceptance,
     "normal-projection": block_normal_projection,
+    "along-normal-study": block_along_normal_study,
     "real-data": block_real_data,
 }
 

@@ -38,7 +38,8 @@ import numpy as np
 if TYPE_CHECKING:
     from .along_normal import AlongNormalRows
 
-__all__ = ["ALONG_NORMAL", "OUTPUTS", "SET_CONTEXT", "SURFACE_CLASS", "ShapResult", "explain", "explain_in_cloud", "global_ranking"]
+__all__ = ["ALONG_NORMAL", "OUTPUTS", "SET_CONTEXT", "SURFACE_CLASS", "ShapResult", "explain", "explain_in_cloud",
+           "global_ranking"]
 
 # Name of the extra player of :func:`explain_in_cloud` for set models: the other points of the point's set.
 SET_CONTEXT = "set_context"
