@@ -188,7 +188,10 @@ def _option_row(a: argparse.Action) -> str:
     if a.nargs != 0 and a.default is not None and a.default is not argparse.SUPPRESS and a.default != []:
         default = f"`{a.default}`" if a.default != "" else "`''`"
     choices = f" (one of: {', '.join(map(str, a.choices))})" if a.choices else ""
-    return f"| `{_cell(names)}` | {_cell(default)} | {_cell((a.help or '') + choices)} |"
+    text = a.help or ""
+    if default:  # the default column says it: a help's own "(default X)" would repeat it
+        text = re.sub(r" \(default [^():]*\)", "", text)
+    return f"| `{_cell(names)}` | {_cell(default)} | {_cell(text + choices)} |"
 
 
 def render_cli() -> str:
@@ -397,7 +400,8 @@ def block_along_normal_study() -> str:
         f"{met[1]} of {n} with the block; along the normal the block covers {100 * min(normal):.1f}-"
         f"{100 * max(normal):.1f} % on every row. Sources: `docs/results/parts/along_normal/summary.json` "
         "(`xmetro parts study docs/results/parts/along_normal --model DIR --no-plots`, DIR from `xmetro "
-        "export-default --from-packaged --add-surfaces --along-normal --out DIR`) and `docs/results/parts/summary.json`.")]
+        "export-default --from-packaged --add-surfaces --along-normal --out DIR`) and "
+        "`docs/results/parts/summary.json`.")]
     return "\n".join(out) + "\n"
 
 

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..judge.along_normal import AlongNormal
 from ..judge.measured_noise import NORMAL_FEATURES
-from .uncertainty import conformal_multiplier
+from .conformal import conformal_multiplier
 
 __all__ = ["MIN_ROWS", "fit", "fit_rows"]
 

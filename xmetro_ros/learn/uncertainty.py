@@ -35,6 +35,7 @@ from ..judge.inference import AXES, ModelSet, update_card
 from ..judge.measured_noise import NORMAL_FEATURES, effective_sigma
 from ..preprocess.noise import MIN_SAMPLES as NOISE_MIN_SAMPLES
 from ..preprocess.noise import WINDOW as NOISE_WINDOW
+from .conformal import conformal_multiplier
 
 __all__ = ["DOMAIN_QUANTILE", "SIGMA_FLOOR_MM", "calibrate", "conditional_multipliers", "conformal_multiplier",
            "cross_conformal_by_cloud", "fit_domain", "interval_metrics", "predict_clouds"]
@@ -91,15 +92,6 @@ def predict_clouds(ms: ModelSet, X: np.ndarray, cloud_id: np.ndarray, with_u: bo
         else:
             out["errors"][rows], out["sigma"][rows] = ms.predict_with_sigma(X[rows])
     return out
-
-
-def conformal_multiplier(residuals: np.ndarray, sigmas: np.ndarray, confidence: float = 0.95) -> float:
-    """crepes' normalized split-conformal half-width for σ̂ = 1: the finite-sample quantile of |r| / σ̂ at level
-    ⌈(n + 1)·confidence⌉ / n (inf when n is too small for that level)."""
-    from crepes import ConformalRegressor
-
-    cr = ConformalRegressor().fit(residuals=np.asarray(residuals, np.float64), sigmas=np.asarray(sigmas, np.float64))
-    return float(cr.predict_int(y_hat=np.zeros(1), sigmas=np.ones(1), confidence=confidence)[0, 1])
 
 
 def cross_conformal_by_cloud(y: np.ndarray, pred: np.ndarray, sigma: np.ndarray, cloud_id: np.ndarray,
