@@ -395,10 +395,18 @@ def block_along_normal_study() -> str:
             normal.append(r["normal_coverage_in_domain"])
             out.append(f"| {part} | {lat:g}/{d:g}/{e:g} | {cells[0]} | {cells[1]} | {r0['verdict']} → {r['verdict']} |")
     n = len(normal)
+    sph = _load("docs/results/parts/along_normal/spheres.json")["cards"]
+    sx = [r["coverage_xyz"][0] for r in sph["block"]["rows"]]
+    sn = [r["coverage_normal"] for r in sph["block"]["rows"]]
     out += ["", _para(
         f"In domain; ✓: every axis and the normal in [93, 97] %. Met on {met[0]} of {n} rows with the shipped card, "
         f"{met[1]} of {n} with the block; along the normal the block covers {100 * min(normal):.1f}-"
-        f"{100 * max(normal):.1f} % on every row. Sources: `docs/results/parts/along_normal/summary.json` "
+        f"{100 * max(normal):.1f} % on every row. The campaign's spheres (Ø 55 and 35 mm, new scans, the same three "
+        f"settings): {sum(r['in_bounds'] for r in sph['block']['rows'])} of {len(sn)} rows met with the block "
+        f"(X {100 * min(sx):.1f}-{100 * max(sx):.1f} %, the normal {100 * min(sn):.1f}-{100 * max(sn):.1f} %), "
+        f"{sum(r['in_bounds'] for r in sph['shipped']['rows'])} of {len(sn)} with the shipped card "
+        "(`python tools/sphere_coverage.py DIR`, `docs/results/parts/along_normal/spheres.json`). Sources: "
+        "`docs/results/parts/along_normal/summary.json` "
         "(`xmetro parts study docs/results/parts/along_normal --model DIR --no-plots`, DIR from `xmetro "
         "export-default --from-packaged --add-surfaces --along-normal --out DIR`) and "
         "`docs/results/parts/summary.json`.")]
