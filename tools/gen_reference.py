@@ -405,12 +405,33 @@ def block_along_normal_study() -> str:
         f"settings): {sum(r['in_bounds'] for r in sph['block']['rows'])} of {len(sn)} rows met with the block "
         f"(X {100 * min(sx):.1f}-{100 * max(sx):.1f} %, the normal {100 * min(sn):.1f}-{100 * max(sn):.1f} %), "
         f"{sum(r['in_bounds'] for r in sph['shipped']['rows'])} of {len(sn)} with the shipped card "
-        "(`python tools/sphere_coverage.py DIR`, `docs/results/parts/along_normal/spheres.json`). Sources: "
+        "(`python tools/sphere_coverage.py DIR`, `docs/results/parts/along_normal/spheres.json`). " + _conditions_note()
+        + " Sources: "
         "`docs/results/parts/along_normal/summary.json` "
         "(`xmetro parts study docs/results/parts/along_normal --model DIR --no-plots`, DIR from `xmetro "
         "export-default --from-packaged --add-surfaces --along-normal --out DIR`) and "
         "`docs/results/parts/summary.json`.")]
     return "\n".join(out) + "\n"
+
+
+def _conditions_note() -> str:
+    """One sentence on U per incidence bin × exposure with and without the block (``conditions.json``)."""
+    cards = _load("docs/results/parts/along_normal/conditions.json")["cards"]
+    g, sh = cards["given"], cards["shipped"]
+    bad = [c for c in g["cells"] if min(c["coverage_xyz"]) < 0.93]
+    if not bad:
+        return (f"Per 10° incidence bin × exposure on held-out spheres and a cylinder, every one of the "
+                f"{len(g['cells'])} cells keeps every axis at 93 % or more with the block "
+                "(`python tools/condition_coverage.py DIR`).")
+    worst = [c["coverage_xyz"] for c in bad]
+    axes = sorted({"XYZ"[c.index(min(c))] for c in worst})
+    hi_inc = max(c["incidence_deg"][1] for c in bad)
+    lo = min(min(c) for c in worst)
+    return (f"Per 10° incidence bin × exposure on held-out spheres Ø 40 / 50 mm and a cylinder (all 27 settings; "
+            f"`python tools/condition_coverage.py DIR`, `docs/results/parts/along_normal/conditions.json`), "
+            f"{len(bad)} of {len(g['cells'])} cells fall below 93 % with the block ({'/'.join(axes)}, down to "
+            f"{100 * lo:.1f} %, all below {hi_inc:g}° incidence), against {sh['cells_below_floor']} with the shipped "
+            "card.")
 
 
 def block_real_data() -> str:
