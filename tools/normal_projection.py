@@ -51,7 +51,7 @@ from xmetro_ros.judge.conditions import exposure_edges
 from xmetro_ros.judge.inference import ModelSet
 from xmetro_ros.judge.scan_handler import ScanHandler
 from xmetro_ros.judge.surface_class import SURFACE_CLASSES
-from xmetro_ros.learn.uncertainty import conformal_multiplier
+from xmetro_ros.learn.conformal import conformal_multiplier
 from xmetro_ros.parts.study import DEFAULT_PARTS, DEFAULT_SETTINGS, FORM_UM, PRESENTATION
 from xmetro_ros.scan.artifacts import Sphere
 from xmetro_ros.scan.calibration_surfaces import surface_campaign

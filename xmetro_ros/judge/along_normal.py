@@ -22,13 +22,19 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["AlongNormal", "AlongNormalRows", "grid_spacing_mm"]
+__all__ = ["AlongNormal", "AlongNormalRows", "exposure_level", "grid_spacing_mm"]
 
 
-def grid_spacing_mm(settings: Any) -> float:
-    """h (mm): the coarser of a scan's two grid spacings, from its ``lateral_density`` and ``direction_density``
-    (points/mm)."""
-    return 1.0 / min(float(settings.lateral_density), float(settings.direction_density))
+def grid_spacing_mm(lateral_density: Any, direction_density: Any) -> Any:
+    """h (mm): the coarser of a scan's two grid spacings from its densities (points/mm); scalars or arrays of rows.
+    The one definition the judge and the calibration (``learn/along_normal.py``) both take."""
+    return 1.0 / np.minimum(lateral_density, direction_density)
+
+
+def exposure_level(exposure_edges: np.ndarray, exposure_ms: Any) -> Any:
+    """The exposure level of an exposure (ms; scalar or array): the number of ``exposure_edges`` at or below it.
+    The one rule the judge and the calibration both take."""
+    return np.searchsorted(exposure_edges, exposure_ms, side="right")
 
 
 @dataclass(frozen=True)
@@ -71,7 +77,7 @@ class AlongNormal:
     def factors(self, surface_class: np.ndarray, exposure_ms: float) -> tuple[np.ndarray, np.ndarray]:
         """(m (M,), c (M,)) of rows of the given surface classes (−1: none → NaN) at one exposure (ms)."""
         cls = np.asarray(surface_class, np.int64).reshape(-1)
-        level = int(np.searchsorted(self.exposure_edges, float(exposure_ms), side="right"))
+        level = int(exposure_level(self.exposure_edges, float(exposure_ms)))
         ok = (cls >= 0) & (cls < self.multipliers.shape[1])
         k = np.where(ok, cls, 0)
         return (np.where(ok, self.multipliers[level, k], np.nan), np.where(ok, self.allowance[k], np.nan))

@@ -516,7 +516,8 @@ class ModelSet:
         X = np.asarray(X)
         dist = self.domain_distance(X) if domain_distance is None else domain_distance
         return an.rows(X[:, self._normal_columns], noise, surface_class, float(settings.exposure_ms),
-                       grid_spacing_mm(settings), dist)
+                       float(grid_spacing_mm(float(settings.lateral_density), float(settings.direction_density))),
+                       dist)
 
     @cached_property
     def _normal_columns(self) -> list[int]:

@@ -3,7 +3,7 @@
 Split-conformal, on calibration rows the model never trained on:
 
 - m per exposure level × surface class: the ``level`` quantile (finite-sample rank ⌈(n + 1)·level⌉, crepes through
-  :func:`.uncertainty.conformal_multiplier`) of |(actual − d)·n| / σ over the rows with a measured noise σ;
+  :func:`.conformal.conformal_multiplier`) of |(actual − d)·n| / σ over the rows with a measured noise σ;
 - c per surface class: the same quantile of the θ / (σ/h) each row and axis needs for |actual − d'|_a ≤ U'_a with
   U_n = m·σ, pooled over the axes (0 where U_n·|n_a| already covers it).
 
@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..judge.along_normal import AlongNormal
+from ..judge.along_normal import AlongNormal, exposure_level, grid_spacing_mm
 from ..judge.measured_noise import NORMAL_FEATURES
 from .conformal import conformal_multiplier
 
@@ -37,7 +37,7 @@ def fit(d: np.ndarray, actual: np.ndarray, normals: np.ndarray, noise: np.ndarra
     sigma = np.asarray(noise, np.float64).reshape(-1)
     cls = np.asarray(surface_class, np.int64).reshape(-1)
     edges = np.asarray(exposure_edges, np.float64)
-    lvl = np.searchsorted(edges, np.asarray(exposure_ms, np.float64).reshape(-1), side="right")
+    lvl = exposure_level(edges, np.asarray(exposure_ms, np.float64).reshape(-1))
     ok = (np.isfinite(sigma) & (sigma > 0) & (cls >= 0) & (cls < n_classes) & np.isfinite(n).all(axis=1)
           & np.isfinite(d).all(axis=1) & np.isfinite(actual).all(axis=1))
     rn = np.abs(np.einsum("ij,ij->i", actual - d, n)) / np.where(ok, sigma, 1.0)
@@ -71,6 +71,6 @@ def fit_rows(X: np.ndarray, names: list[str], y: np.ndarray, pred: np.ndarray, s
     ``pred`` (M, 3) mm in the same sign."""
     X = np.asarray(X, np.float64)
     col = {c: names.index(c) for c in (*NORMAL_FEATURES, "exposure_time", "lateral_density", "direction_density")}
-    spacing = 1.0 / np.minimum(X[:, col["lateral_density"]], X[:, col["direction_density"]])
+    spacing = grid_spacing_mm(X[:, col["lateral_density"]], X[:, col["direction_density"]])
     return fit(pred, y, X[:, [col[c] for c in NORMAL_FEATURES]], noise, surface_class, X[:, col["exposure_time"]],
                spacing, exposure_edges, n_classes, level)
