@@ -425,13 +425,18 @@ def _conditions_note() -> str:
                 "(`python tools/condition_coverage.py DIR`).")
     worst = [c["coverage_xyz"] for c in bad]
     axes = sorted({"XYZ"[c.index(min(c))] for c in worst})
-    hi_inc = max(c["incidence_deg"][1] for c in bad)
     lo = min(min(c) for c in worst)
+    if len(bad) <= 3:  # name each cell
+        where = "; ".join(f"{'XYZ'[c['coverage_xyz'].index(min(c['coverage_xyz']))]} "
+                          f"{100 * min(c['coverage_xyz']):.1f} % at {c['incidence_deg'][0]:g}-"
+                          f"{c['incidence_deg'][1]:g}°, {c['exposure_ms']:g} ms" for c in bad)
+    else:
+        hi_inc = max(c["incidence_deg"][1] for c in bad)
+        where = f"{'/'.join(axes)}, down to {100 * lo:.1f} %, all below {hi_inc:g}° incidence"
     return (f"Per 10° incidence bin × exposure on held-out spheres Ø 40 / 50 mm and a cylinder (all 27 settings; "
             f"`python tools/condition_coverage.py DIR`, `docs/results/parts/along_normal/conditions.json`), "
-            f"{len(bad)} of {len(g['cells'])} cells fall below 93 % with the block ({'/'.join(axes)}, down to "
-            f"{100 * lo:.1f} %, all below {hi_inc:g}° incidence), against {sh['cells_below_floor']} with the shipped "
-            "card.")
+            f"{len(bad)} of {len(g['cells'])} cells {'falls' if len(bad) == 1 else 'fall'} below 93 % with the "
+            f"block ({where}), against {sh['cells_below_floor']} with the shipped card.")
 
 
 def block_real_data() -> str:

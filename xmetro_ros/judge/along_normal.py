@@ -8,8 +8,16 @@ gives carry X and Y errors it learnt on curved artifacts, also on faces where th
 - d' = (d·n)·n, n the judge's unit normal of the point (measured on the scan, the features N_x, N_y, N_z);
 - U along the normal U_n = m·σ, σ the scan's own noise along the normal (:mod:`xmetro_ros.preprocess.noise`), m the
   split-conformal multiplier of the row's exposure level × surface class;
-- U'_a = U_n·√(n_a² + θ²·(1 − n_a²)), θ = c·σ/h an allowance for the error of n's direction (σ/h: the scale of a
-  plane fit's slope error, h the scan's coarser grid spacing in mm), c split-conformal per surface class.
+- U'_a = U_n·√(n_a² + θ_a²), θ_a = c_a·σ·g_a an allowance for the error of n's direction along axis a, c_a
+  split-conformal per incidence bin × surface class × axis (allowance model ``tangent_slopes``; the bins of the
+  card's U, :mod:`.conditions`). Why: with the true normal
+  N = n − δ, the residual on axis a is (a_n − d_n)·n_a − a_n·δ_a, a_n the true deviation along N, d_n = d·n; on the
+  study's scans the first term dominates and U_n·|n_a| misses where δ_a takes n_a below N_a. g_a (1/mm) is how a
+  plane fit's slope errors reach axis a (:func:`tilt_gain`): the grid's two slopes, along the laser line (X,
+  spacing h_x = 1/lateral density) and along the scan (Y, h_y = 1/direction density), each err by ~ (σ/n_z)/h, and
+  n's error is their image on the sphere, so the finer X spacing tilts n most about Y. A 0.9.0 block
+  (``coarser_spacing``: no ``allowance_model`` key, one c per class) used g_a = √(1 − n_a²)/max(h_x, h_y) and
+  still reads so.
 
 A row without a measured noise (an unorganized scan, a hole's or the border's points), or of a class or exposure
 level the calibration never had, keeps the model's d and U. Calibration: :func:`xmetro_ros.learn.along_normal.fit`.
@@ -17,18 +25,58 @@ level the calibration never had, keeps the model's d and U. Calibration: :func:`
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-__all__ = ["AlongNormal", "AlongNormalRows", "exposure_level", "grid_spacing_mm"]
+from .conditions import INCIDENCE_EDGES_DEG, interior_edges
+
+__all__ = ["ALLOWANCE_MODELS", "AlongNormal", "AlongNormalRows", "exposure_level", "grid_spacings_mm",
+           "incidence_bin", "tilt_gain"]
+
+#: How the allowance for n's direction error reaches each axis (:func:`tilt_gain`): ``tangent_slopes`` (since 0.9.1,
+#: what :func:`xmetro_ros.learn.along_normal.fit` calibrates) and ``coarser_spacing`` (0.9.0's blocks).
+ALLOWANCE_MODELS = ("tangent_slopes", "coarser_spacing")
 
 
-def grid_spacing_mm(lateral_density: Any, direction_density: Any) -> Any:
-    """h (mm): the coarser of a scan's two grid spacings from its densities (points/mm); scalars or arrays of rows.
-    The one definition the judge and the calibration (``learn/along_normal.py``) both take."""
-    return 1.0 / np.minimum(lateral_density, direction_density)
+def grid_spacings_mm(lateral_density: Any, direction_density: Any) -> np.ndarray:
+    """(..., 2) mm: a scan's grid spacings along the laser line (X, 1/lateral density) and along the scan (Y,
+    1/direction density) from its densities (points/mm); scalars or arrays of rows. The one definition the judge
+    and the calibration (``learn/along_normal.py``) both take."""
+    return np.stack(np.broadcast_arrays(1.0 / np.asarray(lateral_density, np.float64),
+                                        1.0 / np.asarray(direction_density, np.float64)), axis=-1)
+
+
+def tilt_gain(normals: np.ndarray, spacings_mm: np.ndarray, model: str = "tangent_slopes") -> np.ndarray:
+    """g (M, 3) 1/mm: how much a slope error of the scan's plane fits, per mm of noise along the normal, moves each
+    axis of the unit ``normals`` (M, 3) (sensor frame: X along the laser line, Y along the scan), for grid
+    ``spacings_mm`` (2,) or (M, 2) (h_x, h_y). ``tangent_slopes``: n = (−p, −q, 1)/√(1 + p² + q²) of the height
+    field z(x, y); its slopes p, q err by ~ (σ/n_z)/h_x and (σ/n_z)/h_y (the noise σ along n is σ/n_z along Z),
+    independently, and ∂n/∂p = −n_z·(e_x − n_x·n), ∂n/∂q = −n_z·(e_y − n_y·n) give
+    g_x = √((1 − n_x²)²/h_x² + n_x²n_y²/h_y²), g_y = √(n_x²n_y²/h_x² + (1 − n_y²)²/h_y²),
+    g_z = |n_z|·√(n_x²/h_x² + n_y²/h_y²). ``coarser_spacing`` (0.9.0): g_a = √(1 − n_a²)/max(h_x, h_y)."""
+    n = np.asarray(normals, np.float64)
+    h = np.broadcast_to(np.asarray(spacings_mm, np.float64), (len(n), 2))
+    if model == "coarser_spacing":
+        return np.sqrt(np.maximum(1.0 - n**2, 0.0)) / h.max(axis=1)[:, None]
+    if model != "tangent_slopes":
+        raise ValueError(f"along_normal: unknown allowance model {model!r} (known: {', '.join(ALLOWANCE_MODELS)})")
+    ax, ay = 1.0 / h[:, 0], 1.0 / h[:, 1]
+    nx, ny, nz = n[:, 0], n[:, 1], n[:, 2]
+    cross2 = (nx * ny) ** 2
+    return np.stack([np.sqrt(((1.0 - nx**2) * ax) ** 2 + cross2 * ay**2),
+                     np.sqrt(cross2 * ax**2 + ((1.0 - ny**2) * ay) ** 2),
+                     np.abs(nz) * np.sqrt((nx * ax) ** 2 + (ny * ay) ** 2)], axis=1)
+
+
+def incidence_bin(incidence_edges_deg: Any, incidence: np.ndarray) -> np.ndarray:
+    """(M,) int64: the incidence bin of rows with ``incidence`` (M,) the cos of their angle (the Inc feature), by
+    the card's U's rule (:func:`.conditions.interior_edges`: the number of interior edges the angle reaches);
+    NaN → bin 0 (callers mask such rows)."""
+    cos_e, _ = interior_edges(incidence_edges_deg, [0.0, np.inf])
+    inc = np.asarray(incidence, np.float64).reshape(-1)
+    return (np.nan_to_num(inc, nan=2.0)[:, None] <= cos_e[None, :]).sum(axis=1).astype(np.int64)
 
 
 def exposure_level(exposure_edges: np.ndarray, exposure_ms: Any) -> Any:
@@ -41,18 +89,28 @@ def exposure_level(exposure_edges: np.ndarray, exposure_ms: Any) -> Any:
 class AlongNormal:
     """The calibrated block: ``exposure_edges`` (L − 1,) ms between the L exposure levels (a row's level: the number
     of edges below its exposure), ``multipliers`` (L, C) m per level × surface class (NaN: not calibrated),
-    ``allowance`` (C,) c per surface class (NaN: not calibrated), ``level`` the coverage they were calibrated for."""
+    ``allowance`` (B, C, 3) c per incidence bin × surface class × axis, the bins ``incidence_edges_deg`` (B + 1,)
+    over acos(Inc) as the card's U has them (:mod:`.conditions`), or (C,) one c per class for every axis (0.9.0)
+    (NaN: not calibrated), ``level`` the coverage they were calibrated for, ``allowance_model`` how c reaches each
+    axis (:func:`tilt_gain`)."""
 
     exposure_edges: np.ndarray
     multipliers: np.ndarray
     allowance: np.ndarray
     level: float = 0.95
+    allowance_model: str = "tangent_slopes"
+    incidence_edges_deg: np.ndarray = field(default_factory=lambda: np.asarray(INCIDENCE_EDGES_DEG))
 
     def __post_init__(self) -> None:
         m, c = np.asarray(self.multipliers), np.asarray(self.allowance)
-        if m.ndim != 2 or m.shape[0] != len(self.exposure_edges) + 1 or c.shape != (m.shape[1],):
-            raise ValueError(f"along_normal: {m.shape} multipliers, {c.shape} allowances and "
-                             f"{len(self.exposure_edges)} exposure edges do not match")
+        bins = len(self.incidence_edges_deg) - 1
+        if (m.ndim != 2 or m.shape[0] != len(self.exposure_edges) + 1
+                or c.shape not in ((m.shape[1],), (bins, m.shape[1], 3))):
+            raise ValueError(f"along_normal: {m.shape} multipliers, {c.shape} allowances, "
+                             f"{len(self.exposure_edges)} exposure edges and {bins} incidence bins do not match")
+        if self.allowance_model not in ALLOWANCE_MODELS:
+            raise ValueError(f"along_normal: unknown allowance model {self.allowance_model!r} "
+                             f"(known: {', '.join(ALLOWANCE_MODELS)})")
 
     @classmethod
     def from_card(cls, card: dict[str, Any]) -> AlongNormal | None:
@@ -60,11 +118,15 @@ class AlongNormal:
         block = (card.get("uncertainty") or {}).get("along_normal")
         if not block:
             return None
-        nan = float("nan")
-        return cls(np.asarray(block["exposure_edges_ms"], np.float64),
-                   np.array([[nan if v is None else v for v in row] for row in block["multipliers"]], np.float64),
-                   np.array([nan if v is None else v for v in block["allowance"]], np.float64),
-                   float(block.get("level", 0.95)))
+
+        def arr(v: Any) -> np.ndarray:  # JSON null → NaN, at any depth
+            return np.asarray(np.vectorize(lambda x: np.nan if x is None else x, otypes=[np.float64])(
+                np.asarray(v, dtype=object)), np.float64)
+
+        return cls(np.asarray(block["exposure_edges_ms"], np.float64), arr(block["multipliers"]),
+                   arr(block["allowance"]), float(block.get("level", 0.95)),
+                   str(block.get("allowance_model", "coarser_spacing")),
+                   np.asarray(block.get("incidence_edges_deg", INCIDENCE_EDGES_DEG), np.float64))
 
     def to_block(self) -> dict[str, Any]:
         """The card block (JSON: NaN written as null)."""
@@ -72,41 +134,60 @@ class AlongNormal:
             return [py(x) for x in a] if np.ndim(a) else (None if not np.isfinite(a) else float(a))
 
         return {"exposure_edges_ms": [float(e) for e in self.exposure_edges], "multipliers": py(self.multipliers),
-                "allowance": py(self.allowance), "level": self.level}
+                "allowance": py(self.allowance), "level": self.level, "allowance_model": self.allowance_model,
+                "incidence_edges_deg": [float(e) for e in self.incidence_edges_deg]}
 
-    def factors(self, surface_class: np.ndarray, exposure_ms: float) -> tuple[np.ndarray, np.ndarray]:
-        """(m (M,), c (M,)) of rows of the given surface classes (−1: none → NaN) at one exposure (ms)."""
+    def factors(self, surface_class: np.ndarray, exposure_ms: float, incidence: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """(m (M,), c (M, 3)) of rows of the given surface classes (−1: none → NaN) at one exposure (ms), with the
+        rows' ``incidence`` (M,) cos of the angle between normal and laser (the Inc feature; needed when c is per
+        incidence bin, NaN → NaN)."""
         cls = np.asarray(surface_class, np.int64).reshape(-1)
         level = int(exposure_level(self.exposure_edges, float(exposure_ms)))
         ok = (cls >= 0) & (cls < self.multipliers.shape[1])
         k = np.where(ok, cls, 0)
-        return (np.where(ok, self.multipliers[level, k], np.nan), np.where(ok, self.allowance[k], np.nan))
+        a = np.asarray(self.allowance)
+        if a.ndim == 1:
+            c = np.repeat(a[k][:, None], 3, axis=1)
+        elif len(a) == 1:  # one incidence bin: no Inc needed
+            c = a[0, k]
+        else:
+            if incidence is None:
+                raise ValueError("along_normal: the allowance is per incidence bin; the rows' Inc is needed")
+            inc = np.asarray(incidence, np.float64).reshape(-1)
+            b = incidence_bin(self.incidence_edges_deg, inc)
+            c = np.where(np.isfinite(inc)[:, None], a[b, k], np.nan)
+        return (np.where(ok, self.multipliers[level, k], np.nan), np.where(ok[:, None], c, np.nan))
 
     def rows(self, normals: np.ndarray, noise: np.ndarray, surface_class: np.ndarray, exposure_ms: float,
-             spacing_mm: float, widen: np.ndarray | None = None) -> AlongNormalRows:
+             spacings_mm: Any, widen: np.ndarray | None = None, incidence: np.ndarray | None = None
+             ) -> AlongNormalRows:
         """What this block does to M rows: their unit ``normals`` (M, 3) (the features N_x, N_y, N_z), measured
-        ``noise`` (M,) mm (NaN: none), surface classes (M,), the scan's exposure (ms), its coarser grid spacing (mm)
-        and ``widen`` (M,) the factor the model's U took outside the multivariate domain (max(1, distance);
-        None: 1), which U' takes too."""
+        ``noise`` (M,) mm (NaN: none), surface classes (M,), the scan's exposure (ms), its grid spacings (h_x, h_y)
+        mm (:func:`grid_spacings_mm`) and ``widen`` (M,) the factor the model's U took outside the multivariate
+        domain (max(1, distance); None: 1), which U' takes too, and ``incidence`` (M,) the rows' Inc feature (cos
+        of the angle between normal and laser; for an allowance per incidence bin)."""
         n = np.asarray(normals, np.float64)
         n = n / np.linalg.norm(n, axis=1, keepdims=True)
         sigma = np.asarray(noise, np.float64).reshape(-1)
-        m, c = self.factors(surface_class, exposure_ms)
-        use = np.isfinite(sigma) & (sigma > 0) & np.isfinite(m) & np.isfinite(c) & np.isfinite(n).all(axis=1)
-        theta = c * sigma / float(spacing_mm)
+        m, c = self.factors(surface_class, exposure_ms, incidence)
+        use = (np.isfinite(sigma) & (sigma > 0) & np.isfinite(m) & np.isfinite(c).all(axis=1)
+               & np.isfinite(n).all(axis=1))
+        theta = c * sigma[:, None] * tilt_gain(n, spacings_mm, self.allowance_model)
         un = m * sigma
         if widen is not None:
             w = np.asarray(widen, np.float64).reshape(-1)
             un = un * np.where(np.isfinite(w), np.maximum(w, 1.0), 1.0)
-        U = un[:, None] * np.sqrt(n**2 + (theta**2)[:, None] * (1.0 - n**2))
+        U = un[:, None] * np.sqrt(n**2 + theta**2)
         return AlongNormalRows(use=use, normals=np.where(use[:, None], n, 0.0), U=np.where(use[:, None], U, np.nan))
 
     def apply(self, d: np.ndarray, U: np.ndarray, normals: np.ndarray, noise: np.ndarray,
-              surface_class: np.ndarray, exposure_ms: float, spacing_mm: float,
-              widen: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+              surface_class: np.ndarray, exposure_ms: float, spacings_mm: Any,
+              widen: np.ndarray | None = None, incidence: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
         """(d', U') (M, 3) mm for the rows with d, U (M, 3) mm and what :meth:`rows` takes; a row without a noise, a
         calibrated factor or a finite d and U keeps its d and U."""
-        r = self.rows(normals, noise, surface_class, exposure_ms, spacing_mm, widen)
+        r = self.rows(normals, noise, surface_class, exposure_ms, spacings_mm, widen, incidence)
         return r.carry(d, "error"), r.carry(U, "uncertainty")
 
 

@@ -511,13 +511,13 @@ class ModelSet:
         an = self.along_normal
         if an is None or surface_class is None or noise is None:
             return None
-        from .along_normal import grid_spacing_mm
+        from .along_normal import grid_spacings_mm
 
         X = np.asarray(X)
         dist = self.domain_distance(X) if domain_distance is None else domain_distance
         return an.rows(X[:, self._normal_columns], noise, surface_class, float(settings.exposure_ms),
-                       float(grid_spacing_mm(float(settings.lateral_density), float(settings.direction_density))),
-                       dist)
+                       grid_spacings_mm(float(settings.lateral_density), float(settings.direction_density)), dist,
+                       X[:, list(self.feature_names).index("Inc")] if "Inc" in self.feature_names else None)
 
     @cached_property
     def _normal_columns(self) -> list[int]:

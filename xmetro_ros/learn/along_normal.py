@@ -4,8 +4,11 @@ Split-conformal, on calibration rows the model never trained on:
 
 - m per exposure level × surface class: the ``level`` quantile (finite-sample rank ⌈(n + 1)·level⌉, crepes through
   :func:`.conformal.conformal_multiplier`) of |(actual − d)·n| / σ over the rows with a measured noise σ;
-- c per surface class: the same quantile of the θ / (σ/h) each row and axis needs for |actual − d'|_a ≤ U'_a with
-  U_n = m·σ, pooled over the axes (0 where U_n·|n_a| already covers it).
+- c per incidence bin × surface class × axis: the same quantile of the c_a each row needs for
+  |actual − d'|_a ≤ U'_a (:mod:`xmetro_ros.judge.along_normal`'s U'_a, θ_a = c_a·σ·g_a; 0 where U_n·|n_a| already
+  covers it; g_a the allowance model's gain, :func:`xmetro_ros.judge.along_normal.tilt_gain`); a bin with fewer
+  than ``min_rows`` rows of the class takes the class's c over all bins. One c per class pooled over the axes and
+  incidences (0.9.0's block) left X short near normal incidence and Y over (docs/along-normal.md).
 
 A group with fewer than ``min_rows`` rows gets no factor (NaN: the judge keeps the model's d and U there).
 """
@@ -14,7 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..judge.along_normal import AlongNormal, exposure_level, grid_spacing_mm
+from ..judge.along_normal import AlongNormal, exposure_level, grid_spacings_mm, incidence_bin, tilt_gain
+from ..judge.conditions import INCIDENCE_EDGES_DEG
 from ..judge.measured_noise import NORMAL_FEATURES
 from .conformal import conformal_multiplier
 
@@ -24,12 +28,15 @@ MIN_ROWS = 200
 
 
 def fit(d: np.ndarray, actual: np.ndarray, normals: np.ndarray, noise: np.ndarray, surface_class: np.ndarray,
-        exposure_ms: np.ndarray, spacing_mm: np.ndarray, exposure_edges: np.ndarray, n_classes: int,
-        level: float = 0.95, min_rows: int = MIN_ROWS) -> AlongNormal:
+        exposure_ms: np.ndarray, spacings_mm: np.ndarray, exposure_edges: np.ndarray, n_classes: int,
+        level: float = 0.95, min_rows: int = MIN_ROWS, allowance_model: str = "tangent_slopes",
+        incidence: np.ndarray | None = None) -> AlongNormal:
     """The block from calibration rows: model errors ``d`` and true errors ``actual`` (M, 3) mm (same sign), the
     judge's unit ``normals`` (M, 3), measured ``noise`` (M,) mm (NaN: none; such rows are left out), surface classes
-    (M,) (−1: none, left out), each row's exposure (ms) and coarser grid spacing (mm); ``exposure_edges`` the
-    interior edges between the exposure levels, ``n_classes`` the card's surface classes."""
+    (M,) (−1: none, left out), each row's exposure (ms) and grid spacings (M, 2) (h_x, h_y) mm
+    (:func:`~xmetro_ros.judge.along_normal.grid_spacings_mm`); ``exposure_edges`` the interior edges between the
+    exposure levels, ``n_classes`` the card's surface classes, ``incidence`` (M,) each row's Inc feature (cos of
+    the angle between normal and laser; None: one incidence bin, 0-90°)."""
     d = np.asarray(d, np.float64)
     actual = np.asarray(actual, np.float64)
     n = np.asarray(normals, np.float64)
@@ -47,30 +54,40 @@ def fit(d: np.ndarray, actual: np.ndarray, normals: np.ndarray, noise: np.ndarra
             g = ok & (lvl == a) & (cls == k)
             if g.sum() >= min_rows:
                 mult[a, k] = conformal_multiplier(rn[g], np.ones(int(g.sum())), level)
-    # the θ each row and axis needs for |actual − d'|_a ≤ U_n·√(n_a² + θ²(1 − n_a²)), U_n = m·σ, d' = (d·n)·n
+    # the c_a each row needs for |actual − d'|_a ≤ U_n·√(n_a² + (c_a·σ·g_a)²), U_n = m·σ, d' = (d·n)·n
     m_row = mult[lvl.clip(0, len(edges)), np.where(ok, cls, 0)]
     un = m_row * sigma
     dp = np.einsum("ij,ij->i", d, n)[:, None] * n
+    gain = tilt_gain(np.where(ok[:, None], n, 0.0), np.asarray(spacings_mm, np.float64).reshape(-1, 2),
+                     allowance_model)
     with np.errstate(invalid="ignore", divide="ignore"):
-        s2 = (((actual - dp) / un[:, None]) ** 2 - n**2) / np.maximum(1.0 - n**2, 1e-12)
-        need = np.sqrt(np.maximum(s2, 0.0)) / (sigma / np.asarray(spacing_mm, np.float64).reshape(-1))[:, None]
-    ok_c = ok & np.isfinite(un)
-    allowance = np.full(n_classes, np.nan)
+        s2 = ((actual - dp) / un[:, None]) ** 2 - n**2
+        need = np.sqrt(np.maximum(s2, 0.0)) / np.maximum(sigma[:, None] * gain, 1e-12)
+    edges_deg = np.asarray(INCIDENCE_EDGES_DEG if incidence is not None else (0.0, 90.0), np.float64)
+    inc = np.zeros(len(sigma)) if incidence is None else np.asarray(incidence, np.float64).reshape(-1)
+    ok_c = ok & np.isfinite(un) & np.isfinite(inc)
+    b_row = incidence_bin(edges_deg, inc)
+    allowance = np.full((len(edges_deg) - 1, n_classes, 3), np.nan)
     for k in range(n_classes):
         g = ok_c & (cls == k)
-        if g.sum() >= min_rows:
-            v = need[g].reshape(-1)
-            allowance[k] = conformal_multiplier(v, np.ones(len(v)), level)
-    return AlongNormal(edges, mult, allowance, float(level))
+        if g.sum() < min_rows:
+            continue
+        pooled = [conformal_multiplier(need[g, a], np.ones(int(g.sum())), level) for a in range(3)]
+        for b in range(len(edges_deg) - 1):
+            gb = g & (b_row == b)
+            allowance[b, k] = ([conformal_multiplier(need[gb, a], np.ones(int(gb.sum())), level) for a in range(3)]
+                               if gb.sum() >= min_rows else pooled)
+    return AlongNormal(edges, mult, allowance, float(level), allowance_model, edges_deg)
 
 
 def fit_rows(X: np.ndarray, names: list[str], y: np.ndarray, pred: np.ndarray, surface_class: np.ndarray,
              noise: np.ndarray, exposure_edges: np.ndarray, n_classes: int, level: float = 0.95) -> AlongNormal:
     """:func:`fit` on feature rows X (M, F) named ``names`` (the normal N_x, N_y, N_z, ``exposure_time`` and the
-    two densities give n, the exposure and h = 1 / min(densities)), targets ``y`` and the model's predictions
-    ``pred`` (M, 3) mm in the same sign."""
+    two densities give n, the exposure and the grid spacings), targets ``y`` and the model's predictions ``pred``
+    (M, 3) mm in the same sign."""
     X = np.asarray(X, np.float64)
     col = {c: names.index(c) for c in (*NORMAL_FEATURES, "exposure_time", "lateral_density", "direction_density")}
-    spacing = grid_spacing_mm(X[:, col["lateral_density"]], X[:, col["direction_density"]])
+    spacing = grid_spacings_mm(X[:, col["lateral_density"]], X[:, col["direction_density"]])
     return fit(pred, y, X[:, [col[c] for c in NORMAL_FEATURES]], noise, surface_class, X[:, col["exposure_time"]],
-               spacing, exposure_edges, n_classes, level)
+               spacing, exposure_edges, n_classes, level,
+               incidence=X[:, names.index("Inc")] if "Inc" in names else None)
