@@ -39,7 +39,7 @@ def test_block_round_trip_keeps_the_uncalibrated_groups_empty() -> None:
     an = _fit(_rows(3000, 0))
     block = an.to_block()
     assert block["multipliers"][1][0] is not None and block["multipliers"][0][0] is None  # only 0.5 ms, class 0
-    assert block["allowance"][0][1] == [None, None, None]  # class 1 never seen (one incidence bin: no Inc given)
+    assert block["allowance"][0][1] == [[None, None]] * 3  # class 1 never seen (one incidence bin: no Inc given)
     back = AlongNormal.from_card({"uncertainty": {"along_normal": block}})
     assert back is not None
     np.testing.assert_array_equal(np.isnan(back.multipliers), np.isnan(an.multipliers))
@@ -48,16 +48,17 @@ def test_block_round_trip_keeps_the_uncalibrated_groups_empty() -> None:
 
 
 def test_multiplier_is_the_normal_quantile_for_gaussian_errors() -> None:
-    """Error along the true normal ~ N(0, σ), normals exact, d = 0: m is |N(0, 1)|'s 95 % quantile (1.96) and no
-    allowance is needed."""
+    """Error along the true normal ~ N(0, σ), normals exact, d = 0: m is |N(0, 1)|'s 95 % quantile (1.96) and
+    (almost) no allowance is needed."""
     an = _fit(_rows(20000, 1))
     assert an.multipliers[1, 0] == pytest.approx(1.96, abs=0.05)
-    np.testing.assert_allclose(an.allowance[0, 0], 0.0, atol=1e-9)
+    assert np.all(an.allowance[0, 0] < 0.05), an.allowance[0, 0]  # the sampling slack of a pooled m at most
 
 
 def test_apply_carries_d_onto_the_normal_and_keeps_rows_without_noise() -> None:
     r = _rows(1000, 2)
-    an = _fit(_rows(20000, 3))
+    fitted = _fit(_rows(20000, 3))
+    an = replace(fitted, allowance=np.where(np.isnan(fitted.allowance), np.nan, 0.0))  # no allowance: U' exact
     d = np.random.default_rng(4).normal(0.0, 0.003, (1000, 3))
     U = np.full((1000, 3), 0.05)
     noise = r["noise"].copy()
@@ -68,7 +69,7 @@ def test_apply_carries_d_onto_the_normal_and_keeps_rows_without_noise() -> None:
     n = r["n"][10:]
     assert np.allclose(np.cross(dp[10:], n), 0.0, atol=1e-15)  # d' along n
     np.testing.assert_allclose(np.einsum("ij,ij->i", dp[10:], n), np.einsum("ij,ij->i", d[10:], n))
-    # no allowance needed: U along n, Σ|n_a|·U'_a, is U_n·Σ n_a² = m·σ
+    # without an allowance U along n, Σ|n_a|·U'_a, is U_n·Σ n_a² = m·σ
     np.testing.assert_allclose(np.einsum("ij,ij->i", np.abs(n), Up[10:]), an.multipliers[1, 0] * 0.01, rtol=1e-12)
     # an exposure level or class never calibrated: the model's d and U
     dq, Uq = an.apply(d, U, r["n"], r["noise"], r["cls"], 0.1, (0.1, 0.1))
@@ -81,7 +82,7 @@ def test_allowance_covers_a_measured_normal_that_is_off() -> None:
     fresh rows is at least the calibrated 95 % (less sampling); without the allowance X and Y fall below 94 %."""
     tilt = np.radians(3.0)
     an = _fit(_rows(30000, 5, tilt_rad=tilt))
-    assert (an.allowance[0, 0, :2] > 0.0).all()
+    assert (an.allowance[0, 0, :2, 0] > 0.0).all()  # X and Y, where they carry the deviation
     r = _rows(30000, 6, tilt_rad=tilt)
     dp, Up = an.apply(r["d"], np.zeros((30000, 3)), r["n"], r["noise"], r["cls"], 0.5, (0.1, 0.1))
     cov = (np.abs(r["actual"] - dp) <= Up).mean(axis=0)
@@ -131,9 +132,9 @@ def test_a_0_9_0_block_keeps_its_coarser_spacing_allowance() -> None:
 
 
 def test_allowance_is_calibrated_per_incidence_bin() -> None:
-    """Rows whose measured normal is off (3° s.d.) only near normal incidence (Inc = N_z > cos 30°): with their Inc
-    the fit gives those bins an allowance and the steeper bins a much smaller one, and fresh rows are covered per
-    axis at about the calibrated 95 % in every bin with enough rows (X and Y; Z carries the deviation)."""
+    """Rows whose measured normal is off (3° s.d.) only near normal incidence (Inc = N_z > cos 30°): fitted with
+    their Inc, fresh rows are covered per axis on 94-96 % in every 10° bin with enough rows (X and Y; Z carries the
+    deviation); fitted without it (one bin), the near bins fall below 94.5 %."""
     def rows(m: int, seed: int) -> dict[str, np.ndarray]:
         r = _rows(m, seed)
         tilted = _rows(m, seed, tilt_rad=np.radians(3.0))
@@ -141,22 +142,60 @@ def test_allowance_is_calibrated_per_incidence_bin() -> None:
         r["n"] = np.where(near[:, None], tilted["n"], r["n"])
         return r
 
-    r = rows(60000, 7)
+    r, f = rows(60000, 7), rows(60000, 8)
+    ang = np.degrees(np.arccos(f["N"][:, 2]))
+
+    def per_bin(an: AlongNormal) -> dict[int, np.ndarray]:
+        dp, Up = an.apply(f["d"], np.zeros((60000, 3)), f["n"], f["noise"], f["cls"], 0.5, (0.1, 0.1),
+                          incidence=f["N"][:, 2])
+        hit = np.abs(f["actual"] - dp) <= Up
+        return {lo: hit[b, :2].mean(axis=0) for lo in range(0, 80, 10)
+                if (b := (ang >= lo) & (ang < lo + 10)).sum() >= 3000}
+
+    args = (r["d"], r["actual"], r["n"], r["noise"], r["cls"], r["exposure"], r["spacing"], EDGES, 2)
+    an = fit(*args, incidence=r["N"][:, 2])
+    assert an.allowance.shape == (9, 2, 3, 2)
+    binned = per_bin(an)
+    assert all(((c >= 0.94) & (c <= 0.96)).all() for c in binned.values()), binned  # 94.7-95.4 % when written
+    pooled = per_bin(fit(*args))
+    near = min(pooled[lo].min() for lo in (10, 20))  # 93.7 % when written
+    assert near < 0.945 and near < min(binned[lo].min() for lo in (10, 20)) - 0.005, pooled
+
+
+def test_an_axis_that_carries_no_deviation_gets_its_own_allowance() -> None:
+    """A cylinder along Y: N_y = 0, so the true Y error is 0 and the published Y is d_n·n_y, the model's deviation
+    along the measured normal, which errs by ~0.5°. Beside sphere-like rows (exact normals) that outnumber it, the
+    cylinder's Y rows (|n_y| < CARRY) get their own c: fresh ones are covered on 93-97 % (96.8 % when written);
+    with the carrying rows' c they are not (83.4 %: d_n > m·σ on many of them)."""
+    def rows(m: int, seed: int) -> dict[str, np.ndarray]:
+        rng = np.random.default_rng(seed)
+        r = _rows(m, seed)  # sphere-like rows, exact normals
+        k = m // 5  # the cylinder's rows
+        phi = rng.uniform(-1.2, 1.2, k)
+        N = np.stack([np.sin(phi), np.zeros(k), np.cos(phi)], axis=1)
+        sys = 0.05 * np.sin(phi) ** 2  # a systematic error along N that the model predicts, up to 4.4·σ
+        t = sys + rng.normal(0.0, 0.01, k)
+        tangent = np.cross(N, rng.normal(size=(k, 3)))
+        tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+        ang = np.abs(rng.normal(0.0, np.radians(0.5), k))
+        n = np.cos(ang)[:, None] * N + np.sin(ang)[:, None] * tangent
+        for key, v in (("N", N), ("n", n), ("actual", t[:, None] * N), ("d", sys[:, None] * N)):
+            r[key][:k] = v
+        r["cyl"] = np.arange(m) < k
+        return r
+
+    r = rows(60000, 12)
     an = fit(r["d"], r["actual"], r["n"], r["noise"], r["cls"], r["exposure"], r["spacing"], EDGES, 2,
              incidence=r["N"][:, 2])
-    assert an.allowance.shape == (9, 2, 3)
-    # near bins: the tilt's allowance; steep bins: only the sampling slack of a pooled m (~0.1)
-    near, steep = an.allowance[:3, 0, :2], an.allowance[4:8, 0, :2]
-    assert near.min() > 0.25 and steep.mean() < 0.5 * near.mean()
-    f = rows(60000, 8)
+    f = rows(60000, 13)
     dp, Up = an.apply(f["d"], np.zeros((60000, 3)), f["n"], f["noise"], f["cls"], 0.5, (0.1, 0.1),
                       incidence=f["N"][:, 2])
-    hit = np.abs(f["actual"] - dp) <= Up
-    ang = np.degrees(np.arccos(f["N"][:, 2]))
-    for lo in range(0, 80, 10):
-        b = (ang >= lo) & (ang < lo + 10)
-        if b.sum() >= 3000:
-            assert (hit[b, :2].mean(axis=0) >= 0.93).all(), (lo, hit[b].mean(axis=0))
+    cyl_y = (np.abs(f["actual"] - dp) <= Up)[f["cyl"], 1]
+    assert 0.93 <= cyl_y.mean() <= 0.97, cyl_y.mean()
+    shared = replace(an, allowance=np.repeat(an.allowance[..., :1], 2, axis=-1))  # the carrying rows' c for all
+    dp, Up = shared.apply(f["d"], np.zeros((60000, 3)), f["n"], f["noise"], f["cls"], 0.5, (0.1, 0.1),
+                          incidence=f["N"][:, 2])
+    assert (np.abs(f["actual"] - dp) <= Up)[f["cyl"], 1].mean() < cyl_y.mean() - 0.05
 
 # ---------------------------------------------------------------- the judge and the explainer with the block
 
@@ -179,7 +218,7 @@ def bowl_judged():
     from xmetro_ros.sim import simulate_scan
 
     k = len(SURFACE_CLASSES)
-    an = AlongNormal(EDGES, np.full((3, k), 2.0), np.full((9, k, 3), 0.3))  # c per incidence bin × class × axis
+    an = AlongNormal(EDGES, np.full((3, k), 2.0), np.full((9, k, 3, 2), 0.3))  # c per bin × class × axis × group
     sc = ScannerModel.load()
     scan = simulate_scan(make_part("bowl").transformed(PRESENTATION), ScanSettings(6.0, 3.0, 0.1), scanner=sc, seed=4)
     plain = ScanHandler(ModelSet.load(), sc).process(scan)
@@ -301,6 +340,6 @@ def test_fit_rows_reads_normals_densities_and_incidence_from_the_feature_table()
     an = fit_rows(X, names, r["actual"], r["d"], r["cls"], r["noise"], EDGES, 2)
     want = fit(r["d"], r["actual"], r["n"], r["noise"], r["cls"], r["exposure"], np.tile([0.1, 0.25], (4000, 1)),
                EDGES, 2, incidence=r["N"][:, 2])
-    assert an.allowance.shape == (9, 2, 3)
+    assert an.allowance.shape == (9, 2, 3, 2)
     np.testing.assert_array_equal(an.allowance, want.allowance)
     np.testing.assert_array_equal(an.multipliers, want.multipliers)

@@ -9,15 +9,18 @@ gives carry X and Y errors it learnt on curved artifacts, also on faces where th
 - U along the normal U_n = m·σ, σ the scan's own noise along the normal (:mod:`xmetro_ros.preprocess.noise`), m the
   split-conformal multiplier of the row's exposure level × surface class;
 - U'_a = U_n·√(n_a² + θ_a²), θ_a = c_a·σ·g_a an allowance for the error of n's direction along axis a, c_a
-  split-conformal per incidence bin × surface class × axis (allowance model ``tangent_slopes``; the bins of the
-  card's U, :mod:`.conditions`). Why: with the true normal
-  N = n − δ, the residual on axis a is (a_n − d_n)·n_a − a_n·δ_a, a_n the true deviation along N, d_n = d·n; on the
-  study's scans the first term dominates and U_n·|n_a| misses where δ_a takes n_a below N_a. g_a (1/mm) is how a
-  plane fit's slope errors reach axis a (:func:`tilt_gain`): the grid's two slopes, along the laser line (X,
-  spacing h_x = 1/lateral density) and along the scan (Y, h_y = 1/direction density), each err by ~ (σ/n_z)/h, and
-  n's error is their image on the sphere, so the finer X spacing tilts n most about Y. A 0.9.0 block
-  (``coarser_spacing``: no ``allowance_model`` key, one c per class) used g_a = √(1 − n_a²)/max(h_x, h_y) and
-  still reads so.
+  split-conformal per incidence bin × surface class × axis × whether the axis carries the deviation
+  (|n_a| ≥ :data:`CARRY`) (allowance model ``tangent_slopes``; the bins of the card's U, :mod:`.conditions`).
+
+Why: with the true normal N = n − δ, the residual on axis a is (a_n − d_n)·N_a − d_n·δ_a, a_n the true deviation
+along N, d_n = d·n. Where the axis carries the deviation the first term dominates and U_n·|n_a| misses where δ_a
+takes n_a below N_a; where it carries almost none (a cylinder's axis, a level face's X and Y) the residual is
+d_n·δ_a, and a c shared with the carrying rows covered a cylinder's Y on 79 % (docs/along-normal.md). g_a (1/mm) is
+how a plane fit's slope errors reach axis a (:func:`tilt_gain`): the grid's two slopes, along the laser line (X,
+spacing h_x = 1/lateral density) and along the scan (Y, h_y = 1/direction density), each err by ~ (σ/n_z)/h, and
+n's error is their image on the sphere, so the finer X spacing tilts n most about Y. A 0.9.0 block
+(``coarser_spacing``: no ``allowance_model`` key, one c per class) used g_a = √(1 − n_a²)/max(h_x, h_y) and still
+reads so.
 
 A row without a measured noise (an unorganized scan, a hole's or the border's points), or of a class or exposure
 level the calibration never had, keeps the model's d and U. Calibration: :func:`xmetro_ros.learn.along_normal.fit`.
@@ -32,12 +35,15 @@ import numpy as np
 
 from .conditions import INCIDENCE_EDGES_DEG, interior_edges
 
-__all__ = ["ALLOWANCE_MODELS", "AlongNormal", "AlongNormalRows", "exposure_level", "grid_spacings_mm",
+__all__ = ["ALLOWANCE_MODELS", "CARRY", "AlongNormal", "AlongNormalRows", "exposure_level", "grid_spacings_mm",
            "incidence_bin", "tilt_gain"]
 
 #: How the allowance for n's direction error reaches each axis (:func:`tilt_gain`): ``tangent_slopes`` (since 0.9.1,
 #: what :func:`xmetro_ros.learn.along_normal.fit` calibrates) and ``coarser_spacing`` (0.9.0's blocks).
 ALLOWANCE_MODELS = ("tangent_slopes", "coarser_spacing")
+#: |n_a| from which axis a counts as carrying the deviation (~3° from the plane perpendicular to the axis): the
+#: allowance's second group index, 0 carrying, 1 not (``tools/normal_projection.py`` scores axes by the same cut).
+CARRY = 0.05
 
 
 def grid_spacings_mm(lateral_density: Any, direction_density: Any) -> np.ndarray:
@@ -89,10 +95,11 @@ def exposure_level(exposure_edges: np.ndarray, exposure_ms: Any) -> Any:
 class AlongNormal:
     """The calibrated block: ``exposure_edges`` (L − 1,) ms between the L exposure levels (a row's level: the number
     of edges below its exposure), ``multipliers`` (L, C) m per level × surface class (NaN: not calibrated),
-    ``allowance`` (B, C, 3) c per incidence bin × surface class × axis, the bins ``incidence_edges_deg`` (B + 1,)
-    over acos(Inc) as the card's U has them (:mod:`.conditions`), or (C,) one c per class for every axis (0.9.0)
-    (NaN: not calibrated), ``level`` the coverage they were calibrated for, ``allowance_model`` how c reaches each
-    axis (:func:`tilt_gain`)."""
+    ``allowance`` (B, C, 3, 2) c per incidence bin × surface class × axis × (the axis carries the deviation,
+    |n_a| ≥ :data:`CARRY`; it does not), the bins ``incidence_edges_deg`` (B + 1,) over acos(Inc) as the card's U
+    has them (:mod:`.conditions`), or (C,) one c per class for every axis (0.9.0) (NaN: not calibrated),
+    ``level`` the coverage they were calibrated for, ``allowance_model`` how c reaches each axis
+    (:func:`tilt_gain`)."""
 
     exposure_edges: np.ndarray
     multipliers: np.ndarray
@@ -105,7 +112,7 @@ class AlongNormal:
         m, c = np.asarray(self.multipliers), np.asarray(self.allowance)
         bins = len(self.incidence_edges_deg) - 1
         if (m.ndim != 2 or m.shape[0] != len(self.exposure_edges) + 1
-                or c.shape not in ((m.shape[1],), (bins, m.shape[1], 3))):
+                or c.shape not in ((m.shape[1],), (bins, m.shape[1], 3, 2))):
             raise ValueError(f"along_normal: {m.shape} multipliers, {c.shape} allowances, "
                              f"{len(self.exposure_edges)} exposure edges and {bins} incidence bins do not match")
         if self.allowance_model not in ALLOWANCE_MODELS:
@@ -137,11 +144,11 @@ class AlongNormal:
                 "allowance": py(self.allowance), "level": self.level, "allowance_model": self.allowance_model,
                 "incidence_edges_deg": [float(e) for e in self.incidence_edges_deg]}
 
-    def factors(self, surface_class: np.ndarray, exposure_ms: float, incidence: np.ndarray | None = None
-                ) -> tuple[np.ndarray, np.ndarray]:
+    def factors(self, surface_class: np.ndarray, exposure_ms: float, normals: np.ndarray,
+                incidence: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(m (M,), c (M, 3)) of rows of the given surface classes (−1: none → NaN) at one exposure (ms), with the
-        rows' ``incidence`` (M,) cos of the angle between normal and laser (the Inc feature; needed when c is per
-        incidence bin, NaN → NaN)."""
+        rows' unit ``normals`` (M, 3) (which axes carry the deviation) and ``incidence`` (M,) cos of the angle
+        between normal and laser (the Inc feature; needed when c is per incidence bin, NaN → NaN)."""
         cls = np.asarray(surface_class, np.int64).reshape(-1)
         level = int(exposure_level(self.exposure_edges, float(exposure_ms)))
         ok = (cls >= 0) & (cls < self.multipliers.shape[1])
@@ -149,14 +156,17 @@ class AlongNormal:
         a = np.asarray(self.allowance)
         if a.ndim == 1:
             c = np.repeat(a[k][:, None], 3, axis=1)
-        elif len(a) == 1:  # one incidence bin: no Inc needed
-            c = a[0, k]
         else:
-            if incidence is None:
-                raise ValueError("along_normal: the allowance is per incidence bin; the rows' Inc is needed")
-            inc = np.asarray(incidence, np.float64).reshape(-1)
-            b = incidence_bin(self.incidence_edges_deg, inc)
-            c = np.where(np.isfinite(inc)[:, None], a[b, k], np.nan)
+            b: np.ndarray = np.zeros(len(cls), np.int64)  # one incidence bin: no Inc needed
+            finite: np.ndarray = np.ones(len(cls), bool)
+            if len(a) > 1:
+                if incidence is None:
+                    raise ValueError("along_normal: the allowance is per incidence bin; the rows' Inc is needed")
+                inc = np.asarray(incidence, np.float64).reshape(-1)
+                b, finite = incidence_bin(self.incidence_edges_deg, inc), np.isfinite(inc)
+            group = (np.abs(np.asarray(normals, np.float64)) < CARRY).astype(np.int64)  # 0 carrying, 1 not
+            c = np.take_along_axis(a[b, k], group[:, :, None], axis=2)[:, :, 0]
+            c = np.where(finite[:, None], c, np.nan)
         return (np.where(ok, self.multipliers[level, k], np.nan), np.where(ok[:, None], c, np.nan))
 
     def rows(self, normals: np.ndarray, noise: np.ndarray, surface_class: np.ndarray, exposure_ms: float,
@@ -170,7 +180,7 @@ class AlongNormal:
         n = np.asarray(normals, np.float64)
         n = n / np.linalg.norm(n, axis=1, keepdims=True)
         sigma = np.asarray(noise, np.float64).reshape(-1)
-        m, c = self.factors(surface_class, exposure_ms, incidence)
+        m, c = self.factors(surface_class, exposure_ms, n, incidence)
         use = (np.isfinite(sigma) & (sigma > 0) & np.isfinite(m) & np.isfinite(c).all(axis=1)
                & np.isfinite(n).all(axis=1))
         theta = c * sigma[:, None] * tilt_gain(n, spacings_mm, self.allowance_model)

@@ -4,11 +4,13 @@ Split-conformal, on calibration rows the model never trained on:
 
 - m per exposure level × surface class: the ``level`` quantile (finite-sample rank ⌈(n + 1)·level⌉, crepes through
   :func:`.conformal.conformal_multiplier`) of |(actual − d)·n| / σ over the rows with a measured noise σ;
-- c per incidence bin × surface class × axis: the same quantile of the c_a each row needs for
-  |actual − d'|_a ≤ U'_a (:mod:`xmetro_ros.judge.along_normal`'s U'_a, θ_a = c_a·σ·g_a; 0 where U_n·|n_a| already
-  covers it; g_a the allowance model's gain, :func:`xmetro_ros.judge.along_normal.tilt_gain`); a bin with fewer
-  than ``min_rows`` rows of the class takes the class's c over all bins. One c per class pooled over the axes and
-  incidences (0.9.0's block) left X short near normal incidence and Y over (docs/along-normal.md).
+- c per incidence bin × surface class × axis × whether the axis carries the deviation (|n_a| ≥ ``CARRY``): the
+  same quantile of the c_a each row needs for |actual − d'|_a ≤ U'_a (:mod:`xmetro_ros.judge.along_normal`'s U'_a,
+  θ_a = c_a·σ·g_a; 0 where U_n·|n_a| already covers it; g_a the allowance model's gain,
+  :func:`xmetro_ros.judge.along_normal.tilt_gain`); a bin with fewer than ``min_rows`` such rows takes the c of
+  the class's rows of that axis and group over all bins (of all the class's rows of the axis when those are few).
+  One c per class pooled over the axes and incidences (0.9.0's block) left X short near normal incidence and Y
+  over (docs/along-normal.md).
 
 A group with fewer than ``min_rows`` rows gets no factor (NaN: the judge keeps the model's d and U there).
 """
@@ -17,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..judge.along_normal import AlongNormal, exposure_level, grid_spacings_mm, incidence_bin, tilt_gain
+from ..judge.along_normal import CARRY, AlongNormal, exposure_level, grid_spacings_mm, incidence_bin, tilt_gain
 from ..judge.conditions import INCIDENCE_EDGES_DEG
 from ..judge.measured_noise import NORMAL_FEATURES
 from .conformal import conformal_multiplier
@@ -67,16 +69,23 @@ def fit(d: np.ndarray, actual: np.ndarray, normals: np.ndarray, noise: np.ndarra
     inc = np.zeros(len(sigma)) if incidence is None else np.asarray(incidence, np.float64).reshape(-1)
     ok_c = ok & np.isfinite(un) & np.isfinite(inc)
     b_row = incidence_bin(edges_deg, inc)
-    allowance = np.full((len(edges_deg) - 1, n_classes, 3), np.nan)
+    allowance = np.full((len(edges_deg) - 1, n_classes, 3, 2), np.nan)
+    groups = (~(np.abs(n) >= CARRY), np.abs(n) >= CARRY)  # [1]: carrying rows of each axis, [0]: the rest
+
+    def q(rows: np.ndarray, a: int) -> float:
+        return conformal_multiplier(need[rows, a], np.ones(int(rows.sum())), level)
+
     for k in range(n_classes):
         g = ok_c & (cls == k)
         if g.sum() < min_rows:
             continue
-        pooled = [conformal_multiplier(need[g, a], np.ones(int(g.sum())), level) for a in range(3)]
-        for b in range(len(edges_deg) - 1):
-            gb = g & (b_row == b)
-            allowance[b, k] = ([conformal_multiplier(need[gb, a], np.ones(int(gb.sum())), level) for a in range(3)]
-                               if gb.sum() >= min_rows else pooled)
+        for a in range(3):
+            for j, carried in enumerate((groups[1][:, a], groups[0][:, a])):  # j: 0 carrying, 1 not
+                ga = g & carried
+                pooled = q(ga, a) if ga.sum() >= min_rows else q(g, a)
+                for b in range(len(edges_deg) - 1):
+                    gb = ga & (b_row == b)
+                    allowance[b, k, a, j] = q(gb, a) if gb.sum() >= min_rows else pooled
     return AlongNormal(edges, mult, allowance, float(level), allowance_model, edges_deg)
 
 
