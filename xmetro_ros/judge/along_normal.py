@@ -35,8 +35,8 @@ import numpy as np
 
 from .conditions import INCIDENCE_EDGES_DEG, interior_edges
 
-__all__ = ["ALLOWANCE_MODELS", "CARRY", "AlongNormal", "AlongNormalRows", "exposure_level", "grid_spacings_mm",
-           "incidence_bin", "tilt_gain"]
+__all__ = ["ALLOWANCE_MODELS", "CARRY", "AlongNormal", "AlongNormalRows", "axis_group", "exposure_level",
+           "grid_spacings_mm", "incidence_bin", "tilt_gain"]
 
 #: How the allowance for n's direction error reaches each axis (:func:`tilt_gain`): ``tangent_slopes`` (since 0.9.1,
 #: what :func:`xmetro_ros.learn.along_normal.fit` calibrates) and ``coarser_spacing`` (0.9.0's blocks).
@@ -44,6 +44,12 @@ ALLOWANCE_MODELS = ("tangent_slopes", "coarser_spacing")
 #: |n_a| from which axis a counts as carrying the deviation (~3° from the plane perpendicular to the axis): the
 #: allowance's second group index, 0 carrying, 1 not (``tools/normal_projection.py`` scores axes by the same cut).
 CARRY = 0.05
+
+
+def axis_group(normals: np.ndarray) -> np.ndarray:
+    """(M, 3) int64: each axis's allowance group, 0 where it carries the deviation (|n_a| ≥ :data:`CARRY`), 1 where
+    it does not. The one rule the judge and the calibration both take."""
+    return (np.abs(np.asarray(normals, np.float64)) < CARRY).astype(np.int64)
 
 
 def grid_spacings_mm(lateral_density: Any, direction_density: Any) -> np.ndarray:
@@ -164,8 +170,7 @@ class AlongNormal:
                     raise ValueError("along_normal: the allowance is per incidence bin; the rows' Inc is needed")
                 inc = np.asarray(incidence, np.float64).reshape(-1)
                 b, finite = incidence_bin(self.incidence_edges_deg, inc), np.isfinite(inc)
-            group = (np.abs(np.asarray(normals, np.float64)) < CARRY).astype(np.int64)  # 0 carrying, 1 not
-            c = np.take_along_axis(a[b, k], group[:, :, None], axis=2)[:, :, 0]
+            c = np.take_along_axis(a[b, k], axis_group(normals)[:, :, None], axis=2)[:, :, 0]
             c = np.where(finite[:, None], c, np.nan)
         return (np.where(ok, self.multipliers[level, k], np.nan), np.where(ok[:, None], c, np.nan))
 

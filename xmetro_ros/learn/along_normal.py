@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..judge.along_normal import CARRY, AlongNormal, exposure_level, grid_spacings_mm, incidence_bin, tilt_gain
+from ..judge.along_normal import AlongNormal, axis_group, exposure_level, grid_spacings_mm, incidence_bin, tilt_gain
 from ..judge.conditions import INCIDENCE_EDGES_DEG
 from ..judge.measured_noise import NORMAL_FEATURES
 from .conformal import conformal_multiplier
@@ -70,7 +70,7 @@ def fit(d: np.ndarray, actual: np.ndarray, normals: np.ndarray, noise: np.ndarra
     ok_c = ok & np.isfinite(un) & np.isfinite(inc)
     b_row = incidence_bin(edges_deg, inc)
     allowance = np.full((len(edges_deg) - 1, n_classes, 3, 2), np.nan)
-    groups = (~(np.abs(n) >= CARRY), np.abs(n) >= CARRY)  # [1]: carrying rows of each axis, [0]: the rest
+    group = axis_group(n)  # 0: the axis carries the deviation, 1: it does not
 
     def q(rows: np.ndarray, a: int) -> float:
         return conformal_multiplier(need[rows, a], np.ones(int(rows.sum())), level)
@@ -80,8 +80,8 @@ def fit(d: np.ndarray, actual: np.ndarray, normals: np.ndarray, noise: np.ndarra
         if g.sum() < min_rows:
             continue
         for a in range(3):
-            for j, carried in enumerate((groups[1][:, a], groups[0][:, a])):  # j: 0 carrying, 1 not
-                ga = g & carried
+            for j in (0, 1):
+                ga = g & (group[:, a] == j)
                 pooled = q(ga, a) if ga.sum() >= min_rows else q(g, a)
                 for b in range(len(edges_deg) - 1):
                     gb = ga & (b_row == b)
