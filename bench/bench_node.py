@@ -52,6 +52,25 @@ OUT = ROOT / "bench" / "results" / "node.json"
 from xmetro_ros.scan.artifacts import Sphere  # noqa: E402
 from xmetro_ros.scan.scanner import ScanSettings  # noqa: E402
 
+
+def cpu_model() -> str:
+    """The CPU's model name (/proc/cpuinfo), for the results file: ratios are comparable across hosts, times not."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def utc_now() -> str:
+    """The time a results file was measured, UTC (ISO 8601, minutes)."""
+    import datetime
+
+    return datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%MZ")
+
+
 # ~167k valid points, in the model's domain: the highest in-range densities (16 points/mm, as this bench used
 # before, is outside the training range: every point out-of-domain, verdict RESCAN)
 BIG = (Sphere(27.5, np.zeros(3)), ScanSettings(15.0, 5.0, 0.5))
@@ -403,7 +422,8 @@ def main(argv: list[str] | None = None) -> int:
     from xmetro_ros.ros.dds_env import apply_ros_env
 
     apply_ros_env()
-    result = {"machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
+    result = {"machine": {"cpu": cpu_model(), "utc": utc_now(), "cpus": os.cpu_count(),
+                          "python": platform.python_version(),
                           "threads": os.environ.get("OMP_NUM_THREADS")},
               "goals": {"organized_180k_median_ms": 100, "ratio_to_open3d_normals": 0.2,
                         "unorganized_180k_median_ms": 400, "unorganized_ratio_to_open3d_normals": 1.0,

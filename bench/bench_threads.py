@@ -43,16 +43,6 @@ import bench_node as bn  # noqa: E402
 OUT = ROOT / "bench" / "results" / "threads.json"
 
 
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
 def _core(threads: int, model_dir: str):
     from xmetro_ros.ros.core import XmetroCore
     from xmetro_ros.ros.params import PARAMS
@@ -160,7 +150,8 @@ def main(argv: list[str] | None = None) -> int:
 
     from xmetro_ros.compute.threads import available_cpus, max_threads
 
-    result = {"machine": {"cpu": _cpu_model(), "cpus_available": available_cpus(), "numba_threads_max": max_threads(),
+    result = {"machine": {"cpu": bn.cpu_model(), "utc": bn.utc_now(), "cpus_available": available_cpus(),
+                          "numba_threads_max": max_threads(),
                           "python": platform.python_version()},
               "goals": {"ratio_to_open3d_normals_at_2_threads": 0.5, "unorganized_ratio_at_2_threads": 1.2,
                         "speedup_1_to_16_threads": 4.0},

@@ -90,6 +90,26 @@ def test_surface_class_thresholds() -> None:
         card_surface_class(k, {**four, "classes": ["flat", "edge"]})
 
 
+_EDGY = hst.one_of(hst.floats(-1.0, 1.0), hst.sampled_from([np.nan, np.inf, -np.inf, 0.02, -0.02, 0.1, -0.1, 0.0]))
+
+
+@settings(max_examples=150, deadline=None)
+@given(hnp.arrays(np.float64, hst.tuples(hst.integers(1, 40), hst.just(2)), elements=_EDGY),
+       hst.sampled_from([0.1, 0.4, None]))
+def test_compiled_classes_are_the_rule_written_in_numpy(kappa, sharp) -> None:
+    """The compiled classes (one pass) against the rule as numpy masks: finite rows only, flat within ±t (κmax ≤ t
+    and κmin ≥ −t), convex / concave / saddle by which side crosses, sharp where max |κ| > s overrides."""
+    lo, hi = kappa[:, 0], kappa[:, 1]
+    want = np.full(len(kappa), -1, np.int8)
+    with np.errstate(invalid="ignore"):
+        up, down, ok = hi > 0.02, lo < -0.02, np.isfinite(lo) & np.isfinite(hi)
+        want[ok & ~up & ~down], want[ok & up & ~down], want[ok & ~up & down], want[ok & up & down] = 0, 1, 2, 3
+        if sharp is not None:
+            want[ok & (np.maximum(np.abs(lo), np.abs(hi)) > sharp)] = 4
+    got = surface_class(kappa, 0.02, sharp)
+    assert got.dtype == np.int8 and got.tolist() == want.tolist()
+
+
 @settings(max_examples=150, deadline=None)
 @given(hnp.arrays(np.float64, hst.tuples(hst.integers(1, 30), hst.just(2)),
                   elements=hst.one_of(hst.floats(-1.0, 1.0), hst.sampled_from([np.nan, np.inf, -np.inf, 1e300, -0.4,

@@ -14,6 +14,9 @@ function serves calibration and inference, so the multipliers are calibrated on 
 from __future__ import annotations
 
 import numpy as np
+from numba import njit, prange
+
+from ..compute import threads as _threads  # noqa: F401 - the threading layer, before any parallel kernel runs
 
 __all__ = ["NORMAL_FEATURES", "effective_sigma"]
 
@@ -33,8 +36,29 @@ def effective_sigma(sig: np.ndarray, normals: np.ndarray, surface_class: np.ndar
     if not (len(sig) == len(noise) == len(cls) == len(normals)):
         raise ValueError(f"effective_sigma: {len(sig)} rows of sigma, {len(normals)} normals, {len(cls)} classes, "
                          f"{len(noise)} noise scales")
-    has = np.isfinite(noise)
-    cls_eff = np.where(has, cls, -1).astype(np.int8)
-    use = has & (cls_eff >= 0)
-    measured = noise[:, None] * np.abs(np.asarray(normals, np.float64))
-    return np.where(use[:, None], np.maximum(sig, measured), sig), cls_eff
+    out = np.empty((len(sig), 3), np.float64)
+    cls_eff = np.empty(len(sig), np.int8)
+    _effective(np.ascontiguousarray(sig[:, :3]), np.ascontiguousarray(normals), np.ascontiguousarray(cls),
+               np.ascontiguousarray(noise), out, cls_eff)
+    return out, cls_eff
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _effective(sig: np.ndarray, normals: np.ndarray, cls: np.ndarray, noise: np.ndarray, out: np.ndarray,
+               cls_eff: np.ndarray) -> None:  # pragma: no cover - compiled
+    """:func:`effective_sigma` in one pass over the rows (each row writes only its own: any thread count, the same
+    bits as numpy's ``where(use, maximum(sig, noise·|N|), sig)``, NaN propagated as ``maximum`` does)."""
+    for i in prange(sig.shape[0]):
+        s = noise[i]
+        has = np.isfinite(s)
+        c = cls[i] if has else -1
+        cls_eff[i] = c
+        for a in range(3):
+            v = sig[i, a]
+            if has and c >= 0:
+                m = s * abs(np.float64(normals[i, a]))
+                if np.isnan(v) or np.isnan(m):
+                    v = np.nan
+                elif m > v:
+                    v = m
+            out[i, a] = v

@@ -49,19 +49,26 @@ def surface_class(kappa: np.ndarray, flat: float = FLAT_CURVATURE_PER_MM,
                   sharp: float | None = SHARP_CURVATURE_PER_MM) -> np.ndarray:
     """(M,) int8 class (index into SURFACE_CLASSES, −1: none) of the (M, 2) principal curvatures (κmin, κmax)
     in 1/mm; ``flat`` the threshold t, ``sharp`` the threshold s (1/mm; None: no sharp class, the first four)."""
-    k = np.asarray(kappa, np.float64).reshape(-1, 2)
-    lo, hi = k[:, 0], k[:, 1]
-    out = np.full(len(k), -1, np.int8)
-    with np.errstate(invalid="ignore"):
-        up, down = hi > flat, lo < -flat
-        ok = np.isfinite(lo) & np.isfinite(hi)
-        out[ok & ~up & ~down] = 0
-        out[ok & up & ~down] = 1
-        out[ok & ~up & down] = 2
-        out[ok & up & down] = 3
-        if sharp is not None:
-            out[ok & (np.maximum(np.abs(lo), np.abs(hi)) > sharp)] = 4
+    k = np.ascontiguousarray(np.asarray(kappa, np.float64).reshape(-1, 2))
+    out = np.empty(len(k), np.int8)
+    _classes(k, float(flat), sharp is not None, 0.0 if sharp is None else float(sharp), out)
     return out
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _classes(k: np.ndarray, flat: float, has_sharp: bool, sharp: float, out: np.ndarray) -> None:  # pragma: no cover
+    """:func:`surface_class`'s rule, row by row in one pass (on the judge's hot path: 1.0 against 5.6 ms for
+    167k points in numpy's masks here; each row its own answer, any thread count)."""
+    for i in prange(k.shape[0]):
+        lo, hi = k[i, 0], k[i, 1]
+        if not (np.isfinite(lo) and np.isfinite(hi)):
+            out[i] = -1
+            continue
+        up, down = hi > flat, lo < -flat
+        c = 3 if up and down else 1 if up else 2 if down else 0
+        if has_sharp and max(abs(lo), abs(hi)) > sharp:
+            c = 4
+        out[i] = c
 
 
 def card_surface_class(kappa: np.ndarray, by_surface: dict) -> np.ndarray:

@@ -33,6 +33,9 @@ __all__ = ["RADIUS_MM", "grid_mean_curvature", "grid_principal_curvatures", "mea
 
 RADIUS_MM = 1.0  # neighbour distance: ~5 normal-fit spacings at the study's densities, well below the parts' features
 _MIN_DIRECTIONS = 3  # fewer valid neighbours (scan border, holes): NaN
+# Fused multiply-adds only (no reassociation, no NaN/Inf assumptions): the same bits at any thread count, ~18 %
+# off the principal curvatures on a 167k-point scan here (17.3 against 21.1 ms at 1 thread, side by side).
+_CONTRACT = {"contract"}
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -57,7 +60,7 @@ def _step(rows: np.ndarray, P: np.ndarray, N: np.ndarray, i: int, j: int, a0: in
     return True, ((N[k, 0] - N[a0, 0]) * d0 + (N[k, 1] - N[a0, 1]) * d1 + (N[k, 2] - N[a0, 2]) * d2) / dd, d0, d1, d2
 
 
-@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_CONTRACT)
 def _curvature(rows: np.ndarray, P: np.ndarray, N: np.ndarray, kr: int, kc: int) -> np.ndarray:
     """(M,) mean curvature of the M points P / N (M, 3) laid out on the grid ``rows`` (H, W): row of each cell's
     point, −1 where none. The grid holds 4 bytes a cell; the points are read where they are."""
@@ -83,7 +86,7 @@ def _curvature(rows: np.ndarray, P: np.ndarray, N: np.ndarray, kr: int, kc: int)
     return out
 
 
-@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True, fastmath=_CONTRACT)
 def _principal(rows: np.ndarray, P: np.ndarray, N: np.ndarray, kr: int, kc: int) -> np.ndarray:
     """(M, 2) principal curvatures (κmin, κmax) of the M points on the grid ``rows`` (as :func:`_curvature`): the
     second fundamental form fitted by least squares to the eight directional normal curvatures."""
