@@ -35,7 +35,6 @@ watchdog); the service and action callbacks are in :mod:`xmetro_ros.ros.services
 
 from __future__ import annotations
 
-import os
 import time
 from typing import Any
 
@@ -53,6 +52,7 @@ from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
 from ..action import RecommendSettings as RecommendSettingsAction
+from ..compute.malloc import tune_for_scans
 from ..msg import ReferenceCheck, ScannerSettings, ScanQuality
 from ..srv import Explain, RecommendSettings
 from . import params as node_params
@@ -388,16 +388,6 @@ class XmetroNode(XmetroWiring, Node):
         super().destroy_node()
 
 
-def _limit_malloc_arenas(n: int = 2) -> None:
-    """glibc: at most ``n`` malloc arenas (as MALLOC_ARENA_MAX=n) so worker threads do not grow the RSS."""
-    try:
-        import ctypes
-
-        ctypes.CDLL("libc.so.6").mallopt(-8, int(os.environ.get("MALLOC_ARENA_MAX", n)))  # M_ARENA_MAX = -8
-    except (OSError, AttributeError, ValueError):
-        pass
-
-
 def main(args: list[str] | None = None) -> int:
     """Console script ``xmetro_node [--localhost-only] --ros-args --params-file config/xmetro.yaml ...``.
 
@@ -444,7 +434,7 @@ def run_node(factory: Any, args: list[str] | None = None) -> int:
         print(node_help(argv[0] if argv else "xmetro_node"))
         return 0
     apply_requested_ros_env(flag)
-    _limit_malloc_arenas()
+    tune_for_scans()  # glibc's allocator for scan after scan (compute/malloc.py); the environment's settings win
     rclpy.init(args=argv)
     node = None
     try:
