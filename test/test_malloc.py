@@ -8,12 +8,15 @@ from __future__ import annotations
 
 import json
 import os
+import platform
 import subprocess
 import sys
 
 import pytest
 
 from xmetro_ros.compute import malloc
+
+pytestmark = pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="the tuning is glibc's mallopt")
 
 _SCRIPT = """
 import json, resource, sys
@@ -37,8 +40,6 @@ def _run(mode: str, **env: str) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
-
 
 def test_tuned_rounds_reuse_the_heap_where_the_defaults_map_fresh_pages() -> None:
     default, tuned = _run("default"), _run("tuned")
@@ -56,3 +57,12 @@ def test_the_environments_settings_win() -> None:
     assert r["set"] == {"mmap_threshold": malloc.MMAP_THRESHOLD}
     r = _run("tuned", MALLOC_ARENA_MAX="many")
     assert "arena_max" not in r["set"] and "mmap_threshold" in r["set"]
+
+
+def test_without_mallopt_nothing_is_set(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A C library without ``mallopt`` (not glibc): nothing is changed, nothing raised."""
+    def no_libc(_name: str) -> None:
+        raise OSError("no libc.so.6")
+
+    monkeypatch.setattr(malloc.ctypes, "CDLL", no_libc)
+    assert malloc.tune_for_scans({}) == {}

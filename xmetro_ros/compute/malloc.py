@@ -31,9 +31,9 @@ TRIM_THRESHOLD = 256 * 1024 * 1024
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_ARENA_MAX = -1, -3, -8
 
 
-def _given(env: Mapping[str, str], var: str, tunable: str) -> bool:
-    """Whether the environment sets a malloc parameter itself (its variable or its glibc tunable)."""
-    return var in env or f"glibc.malloc.{tunable}=" in env.get("GLIBC_TUNABLES", "")
+def _tuned_by(env: Mapping[str, str], tunable: str) -> bool:
+    """Whether ``GLIBC_TUNABLES`` in the environment sets the malloc parameter ``tunable``."""
+    return f"glibc.malloc.{tunable}=" in env.get("GLIBC_TUNABLES", "")
 
 
 def tune_for_scans(env: Mapping[str, str] | None = None) -> dict[str, int]:
@@ -46,13 +46,13 @@ def tune_for_scans(env: Mapping[str, str] | None = None) -> dict[str, int]:
     except (OSError, AttributeError):
         return {}
     wanted: list[tuple[str, int, int]] = []
-    if "glibc.malloc.arena_max=" not in env.get("GLIBC_TUNABLES", ""):
+    if not _tuned_by(env, "arena_max"):
         try:
             wanted.append(("arena_max", _M_ARENA_MAX, int(env.get("MALLOC_ARENA_MAX", ARENAS))))
         except ValueError:
             pass  # not a number: glibc ignored it too
-    if not _given(env, "MALLOC_MMAP_THRESHOLD_", "mmap_threshold"):
+    if "MALLOC_MMAP_THRESHOLD_" not in env and not _tuned_by(env, "mmap_threshold"):
         wanted.append(("mmap_threshold", _M_MMAP_THRESHOLD, MMAP_THRESHOLD))
-    if not _given(env, "MALLOC_TRIM_THRESHOLD_", "trim_threshold"):
+    if "MALLOC_TRIM_THRESHOLD_" not in env and not _tuned_by(env, "trim_threshold"):
         wanted.append(("trim_threshold", _M_TRIM_THRESHOLD, TRIM_THRESHOLD))
     return {name: value for name, param, value in wanted if mallopt(param, value) == 1}  # mallopt: 1 on success

@@ -36,9 +36,11 @@ def effective_sigma(sig: np.ndarray, normals: np.ndarray, surface_class: np.ndar
     if not (len(sig) == len(noise) == len(cls) == len(normals)):
         raise ValueError(f"effective_sigma: {len(sig)} rows of sigma, {len(normals)} normals, {len(cls)} classes, "
                          f"{len(noise)} noise scales")
+    if sig.shape[1:] != (3,) or np.shape(normals)[1:] != (3,):  # the kernel reads three axes of each row
+        raise ValueError(f"effective_sigma: sigma {sig.shape} and normals {np.shape(normals)} must be (M, 3)")
     out = np.empty((len(sig), 3), np.float64)
     cls_eff = np.empty(len(sig), np.int8)
-    _effective(np.ascontiguousarray(sig[:, :3]), np.ascontiguousarray(normals), np.ascontiguousarray(cls),
+    _effective(np.ascontiguousarray(sig), np.ascontiguousarray(normals), np.ascontiguousarray(cls),
                np.ascontiguousarray(noise), out, cls_eff)
     return out, cls_eff
 
