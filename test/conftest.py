@@ -119,3 +119,18 @@ def need_shared(*paths: Path) -> Path:
             pytest.fail(f"{why} and {REQUIRE_SHARED_ENV}=1: CI must never skip these tests", pytrace=False)
         pytest.skip(why)
     return Path(paths[0])
+
+
+def at_one_and_two_numba_threads(fn):
+    """(fn() at 1 numba thread, fn() at 2, or at the most numba has when fewer): for the tests that a compiled kernel
+    gives the same bits at any thread count; numba's thread count is restored."""
+    import numba
+
+    before = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = fn()
+        numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+        return one, fn()
+    finally:
+        numba.set_num_threads(before)

@@ -229,17 +229,10 @@ def test_a_failing_run_on_the_pool_raises_in_the_caller():
 def test_domain_distance_bits_do_not_depend_on_threads_or_neighbours(default, features):
     """The compiled distance (set_kernels.whitened_norm) at 1 and 2 numba threads, and each row alone against the
     same row in a 19k-row batch (blocks of 64 rows split over the threads): the same bits."""
-    import numba
+    from conftest import at_one_and_two_numba_threads
 
     X = np.tile(_with_bad_rows(features, 5), (3, 1))
-    before = numba.get_num_threads()
-    try:
-        numba.set_num_threads(1)
-        one = default.domain_distance(X)
-        numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
-        two = default.domain_distance(X)
-    finally:
-        numba.set_num_threads(before)
+    one, two = at_one_and_two_numba_threads(lambda: default.domain_distance(X))
     assert np.array_equal(one, two, equal_nan=True)
     rows = [0, 63, 64, 1000, len(X) - 1]
     alone = np.concatenate([default.domain_distance(X[r:r + 1]) for r in rows])

@@ -3,9 +3,9 @@
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 import pytest
+from conftest import at_one_and_two_numba_threads
 from hypothesis import given, settings
 from hypothesis import strategies as hst
 
@@ -98,14 +98,7 @@ def test_same_bits_at_any_thread_count_and_none_unorganized() -> None:
     from xmetro_ros.scan.artifacts import Sphere
 
     _, prep = _prepared(Sphere(20.0), ScanSettings(10.0, 4.0, 0.5), seed=2)
-    before = numba.get_num_threads()
-    try:
-        numba.set_num_threads(1)
-        one = noise_scale(prep)
-        numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
-        two = noise_scale(prep)
-    finally:
-        numba.set_num_threads(before)
+    one, two = at_one_and_two_numba_threads(lambda: noise_scale(prep))
     np.testing.assert_array_equal(one, two)
     assert np.isfinite(one).mean() > 0.95
     flat = grid_noise_scale(prep.points, prep.normals, np.arange(len(prep.points)), (len(prep.points),))

@@ -185,7 +185,7 @@ def _calibrate_default(model_dir: Path, profile: str, seed: int, surfaces: bool 
               for i, c in enumerate(t.clouds[: len(items)])] + labels
     block = calibrate(model_dir, t.X, t.y, t.cloud_id, cloud_labels=labels, write=not keep_calibration,
                       surface_class=cs.surface_class if surfaces else None, noise=cs.noise if surfaces else None,
-                      by_source=by_source, along_normal=along_normal)
+                      by_source=by_source, along_normal=along_normal, tilt=cs.tilt if along_normal else None)
     shape = fit_shape_domain(cs.mean_curvature)
     extra: dict[str, Any] = {}
     if surfaces:

@@ -503,11 +503,14 @@ class ModelSet:
         return AlongNormal.from_card(self.card)
 
     def along_normal_rows(self, X: np.ndarray, surface_class: np.ndarray | None, noise: np.ndarray | None,
-                          settings: Any, domain_distance: np.ndarray | None = None) -> Any:
+                          settings: Any, domain_distance: np.ndarray | None = None,
+                          tilt: np.ndarray | None = None) -> Any:
         """What the card's :attr:`along_normal` block does to the feature rows X (M, F) of one scan taken with
-        ``settings`` (:class:`.along_normal.AlongNormalRows`), with the rows' surface classes and measured noise (mm)
-        and their multivariate domain distance (None: computed): the normals are the features N_x, N_y, N_z. None
-        when the card has no block or the scan no classes or noise. The judge and the explainer both use it."""
+        ``settings`` (:class:`.along_normal.AlongNormalRows`), with the rows' surface classes and measured noise (mm),
+        their multivariate domain distance (None: computed) and measured tilt noise (M, 3) radians (the
+        ``measured_tilt`` allowance; :mod:`xmetro_ros.preprocess.tilt_noise`): the normals are the features N_x, N_y,
+        N_z. None when the card has no block or the scan no classes or noise. The judge and the explainer both use
+        it."""
         an = self.along_normal
         if an is None or surface_class is None or noise is None:
             return None
@@ -517,7 +520,7 @@ class ModelSet:
         dist = self.domain_distance(X) if domain_distance is None else domain_distance
         return an.rows(X[:, self._normal_columns], noise, surface_class, float(settings.exposure_ms),
                        grid_spacings_mm(float(settings.lateral_density), float(settings.direction_density)), dist,
-                       X[:, list(self.feature_names).index("Inc")] if "Inc" in self.feature_names else None)
+                       X[:, list(self.feature_names).index("Inc")] if "Inc" in self.feature_names else None, tilt)
 
     @cached_property
     def _normal_columns(self) -> list[int]:

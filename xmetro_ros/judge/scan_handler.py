@@ -26,6 +26,7 @@ import numpy as np
 
 from ..compute.threads import use_threads
 from ..preprocess.noise import noise_scale
+from ..preprocess.tilt_noise import tilt_noise
 from ..scan.geometry import HeadPose, RowPoses
 from ..scan.scan import Scan
 from ..scan.scanner import ScannerModel, SettingsError
@@ -211,6 +212,8 @@ class ScanResult:
         noise: (M,) float64 measured noise (mm, along the normal; :mod:`xmetro_ros.preprocess.noise`) of each row of
             ``prepared`` that its U took (NaN: none), None when the card's U does not use it.
         model_id: id of the model set that judged the scan (the primary, or the pose model: :meth:`ScanHandler.route`).
+        tilt: (M, 3) float64 measured tilt noise (radians; :mod:`xmetro_ros.preprocess.tilt_noise`) of each row of
+            ``prepared`` that the card's along-normal allowance took (NaN: none), None when it takes none.
     """
 
     deviations: np.ndarray
@@ -229,6 +232,7 @@ class ScanResult:
     surface_class: np.ndarray | None = None
     noise: np.ndarray | None = None
     model_id: str = ""
+    tilt: np.ndarray | None = None
 
 
 def warm_up() -> float:
@@ -239,11 +243,14 @@ def warm_up() -> float:
     import time
 
     from ..preprocess import curvature, grid_kernels, noise
-    from . import scan_stats
+    from ..preprocess import tilt_noise as tilt_kernels
+    from . import along_normal, scan_stats
 
     t = time.perf_counter()
     grid_kernels.warm_up()
     noise.warm_up()
+    tilt_kernels.warm_up()
+    along_normal.warm_up()
     for fn in (curvature.grid_mean_curvature, curvature.grid_principal_curvatures):
         fn(np.zeros((1, 3)), np.ones((1, 3), np.float32), np.zeros(1, np.int64), (2, 2), 1.0, 1.0)
     from ..preprocess import knn_grid
@@ -449,6 +456,7 @@ class ScanHandler:
         # U comes from the same call as the errors: a PointNet point's prediction depends on its set.
         unc_note = ""
         mv_ood = None
+        tilt = None
         # the two principal curvatures when the card uses them: U per surface class, the shape domain's cells
         kappa = self._principal_curvatures(prepared, model)
         surf = (model.surface_classes(kappa) if kappa is not None and getattr(model, "by_surface", False)
@@ -461,7 +469,11 @@ class ScanHandler:
             U = np.asarray(up.U, dtype=np.float64)
             if model.card.get("domain_mv"):  # (U is widened from distance 1 on, whatever the margin)
                 mv_ood = model.out_of_domain_mv(X, up.domain_distance, margin=p.domain_margin)
-            along = model.along_normal_rows(X, surf, noise, scan.settings, up.domain_distance)
+            # the scan's own tilt noise of its normals, where the card's along-normal allowance reads it
+            an = getattr(model, "along_normal", None)
+            if an is not None and an.needs_tilt and noise is not None:
+                tilt = tilt_noise(prepared, offset=self.preprocess_config().grid_window)
+            along = model.along_normal_rows(X, surf, noise, scan.settings, up.domain_distance, tilt=tilt)
             if along is not None:
                 # d and U carried onto the measured normal, U along it from the scan's noise (judge/along_normal.py)
                 pred, U = along.carry(pred, "error"), along.carry(U, "uncertainty")
@@ -494,7 +506,7 @@ class ScanHandler:
         return ScanResult(deviations=dev, flags=flags, quality=quality, prepared=prepared, features=X,
                           predictions=pred, context=ctx, scan=scan, kept=kept, uncertainty=unc, row_uncertainty=U,
                           decisions=decisions, shape_out_of_domain=shape_ood, surface_class=surf, noise=noise,
-                          model_id=model_id)
+                          model_id=model_id, tilt=tilt)
 
     def crop_rows(self, res: ScanResult, start: int, stop: int, settings_defaulted: bool = False) -> ScanResult:
         """The result of rows ``start:stop`` of an organized scan judged whole (a profile stream's chunk judged with
@@ -547,7 +559,8 @@ class ScanHandler:
                         decisions=decisions,
                         shape_out_of_domain=None if res.shape_out_of_domain is None else res.shape_out_of_domain[m],
                         surface_class=None if res.surface_class is None else res.surface_class[m],
-                        noise=None if res.noise is None else res.noise[m])
+                        noise=None if res.noise is None else res.noise[m],
+                        tilt=None if res.tilt is None else res.tilt[m])
 
     @staticmethod
     def _principal_curvatures(prepared: Any, model: Any) -> np.ndarray | None:

@@ -45,6 +45,7 @@ class JudgedScan:
             the explainer of U keeps each point's class.
         noise: (M,) float64 measured noise (mm, along the normal) each point's U took (None: the card's U does not
             use it; NaN: none for that point); the explainer of U keeps it with the class.
+        tilt: (M, 3) float64 measured tilt noise (radians) each point's along-normal U took (None: none taken).
     """
 
     stamp_ns: int
@@ -63,6 +64,7 @@ class JudgedScan:
     cad_pose: np.ndarray | None = None  # (4, 4) mm, part → scan frame, of the CAD map of this scan (None: no CAD)
     surface_class: np.ndarray | None = None
     noise: np.ndarray | None = None
+    tilt: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         # Kept for every judged scan in the history: only what the services need, compactly.
@@ -190,7 +192,8 @@ def explain_rows(model_set: Any, judged: JudgedScan, rows: np.ndarray, axes: tup
     surf_f = None if surf is None else np.asarray(surf)[finite]
     noise_f = None if noise is None else np.asarray(noise)[finite]
     along_rows = getattr(model_set, "along_normal_rows", None)
-    along = None if along_rows is None else along_rows(feats[finite], surf_f, noise_f, judged.settings)
+    tilt_f = None if judged.tilt is None else np.asarray(judged.tilt)[finite]
+    along = None if along_rows is None else along_rows(feats[finite], surf_f, noise_f, judged.settings, tilt=tilt_f)
     res = explain_in_cloud(model_set, feats[finite], cloud_row[rows], None, axes=axes, output=output,
                            surface_class=surf_f, noise=noise_f, along=along)
     X = feats[rows].astype(np.float64)

@@ -247,8 +247,8 @@ def calibrate(model_dir: str | Path, X: np.ndarray, y: np.ndarray, cloud_id: np.
               confidence: float = 0.95, cloud_labels: list | None = None, write: bool = True,
               sigma_floor_mm: float = SIGMA_FLOOR_MM, conditional: bool = True,
               envelope: int = ENVELOPE_BINS, surface_class: np.ndarray | None = None,
-              noise: np.ndarray | None = None, by_source: bool = False, along_normal: bool = False
-              ) -> dict[str, Any]:
+              noise: np.ndarray | None = None, by_source: bool = False, along_normal: bool = False,
+              tilt: np.ndarray | None = None) -> dict[str, Any]:
     """Split-conformal calibration of the model set in ``model_dir`` on calibration clouds (rows X (M, F),
     measured errors y (M, 3) mm, cloud ids): writes the card's ``uncertainty`` block (unless ``write`` False) and
     returns it. The clouds must be held out from training (the caller's split; their ids / labels are recorded).
@@ -258,9 +258,10 @@ def calibrate(model_dir: str | Path, X: np.ndarray, y: np.ndarray, cloud_id: np.
     with ``noise`` (M,) (the rows' measured noise, mm along the normal, NaN: none; preprocess/noise.py) those per
     class on max(σ̂, noise·|N|) (:mod:`xmetro_ros.judge.measured_noise`), the σ the judge then multiplies;
     ``by_source``: each σ source's rows of a class's cell covered on their own (:func:`conditional_multipliers`).
-    ``along_normal`` (with ``surface_class`` and ``noise``): the block also gets ``along_normal``, d and U carried
-    onto the measured normal with U along it from the measured noise (:mod:`xmetro_ros.judge.along_normal`,
-    fitted by :func:`.along_normal.fit_rows` on the same rows and predictions).
+    ``along_normal`` (with ``surface_class``, ``noise`` and ``tilt`` (M, 3), the rows' measured tilt noise,
+    preprocess/tilt_noise.py): the block also gets ``along_normal``, d and U carried onto the measured normal with U
+    along it from the measured noise (:mod:`xmetro_ros.judge.along_normal`, fitted by
+    :func:`.along_normal.fit_rows` on the same rows and predictions).
     """
     if not 0 < confidence < 1:
         raise ValueError(f"confidence must be in (0, 1), got {confidence}")
@@ -324,8 +325,8 @@ def calibrate(model_dir: str | Path, X: np.ndarray, y: np.ndarray, cloud_id: np.
                              "and a measured noise" if nblock else "")
                           + "), times distance/threshold outside domain_mv")
     if along_normal:
-        if surface_class is None or noise is None:
-            raise ValueError("along_normal needs the rows' surface classes and measured noise")
+        if surface_class is None or noise is None or tilt is None:
+            raise ValueError("along_normal needs the rows' surface classes, measured noise and tilt noise")
         from ..judge.conditions import exposure_edges
         from ..judge.surface_class import SURFACE_CLASSES
         from .along_normal import fit_rows
@@ -333,7 +334,7 @@ def calibrate(model_dir: str | Path, X: np.ndarray, y: np.ndarray, cloud_id: np.
         names = list(ms.feature_names)
         levels = sorted({float(v) for v in np.asarray(X)[:, names.index("exposure_time")]})
         an = fit_rows(np.asarray(X), names, y, pred["errors"], surface_class, noise,
-                      np.asarray(exposure_edges(levels)[1:-1]), len(SURFACE_CLASSES), confidence)
+                      np.asarray(exposure_edges(levels)[1:-1]), len(SURFACE_CLASSES), confidence, tilt=tilt)
         block["along_normal"] = {**an.to_block(), "fitted_on": "the calibration rows with a measured noise and a "
                                  "surface class, the model's predictions of this calibration"}
     if write:

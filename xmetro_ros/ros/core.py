@@ -404,7 +404,7 @@ class XmetroCore:
             index=np.asarray(res.prepared.index), points=np.asarray(res.prepared.points), features=res.features,
             predictions=res.predictions, context=_lean_context(res.context), settings=entry.settings, pose=entry.pose,
             scanner_id=self.scanner.id, model_id=res.model_id, uncertainty=res.row_uncertainty, cad_pose=cad_pose,
-            surface_class=res.surface_class, noise=res.noise))
+            surface_class=res.surface_class, noise=res.noise, tilt=res.tilt))
         q.processing_latency = time.monotonic() - t0
         qd = res.quality
         # A line a person reads: the scan by its time (s) and frame, its errors and U in µm (SI stays on the topics).
