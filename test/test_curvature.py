@@ -138,15 +138,20 @@ def test_adding_the_surfaces_keeps_the_cards_own_calibration(tmp_path) -> None:
     """``_calibrate_default(..., keep_calibration=True)`` (``xmetro export-default --add-surfaces``, how the pose
     model's card got its per-class U): the card's all-class multipliers, conditions and multivariate domain — what
     the recommender uses — stay as they were, byte for byte; the per-class block (on the measured noise, with the
-    clouds it came from) and the (κmin, κmax) shape domain are added; a card without conditional U is refused."""
+    clouds it came from) and the (κmin, κmax) shape domain are added, and the along-normal block with
+    ``along_normal`` (a measured-tilt one), none without it; a card without conditional U is refused."""
     pytest.importorskip("open3d")
     from xmetro_ros.apps.train import _calibrate_default
+    from xmetro_ros.judge.along_normal import AlongNormal
 
     d = tmp_path / "m"
     shutil.copytree(default_model_dir(), d)
     card = json.loads((d / "card.json").read_text())
     del card["uncertainty"]["conditional"]["by_surface"]
     del card["domain_shape"]["principal"]
+    # an along-normal block fitted on other rows (0.9.1's kind), which the new calibration must not keep
+    stale = AlongNormal(np.array([0.2236, 1.0]), np.full((3, 5), 2.0), np.full((9, 5, 3, 2), 0.3))
+    card["uncertainty"]["along_normal"] = stale.to_block()
     (d / "card.json").write_text(json.dumps(card))
     _calibrate_default(d, "micro", 0, keep_calibration=True, by_source=True)
     new = json.loads((d / "card.json").read_text())
@@ -159,6 +164,11 @@ def test_adding_the_surfaces_keeps_the_cards_own_calibration(tmp_path) -> None:
     assert by["noise"]["window_cells"] == 7 and "sources" in by
     assert any("calibration surfaces" in c for c in by["calibration_clouds"])
     assert "principal" in new["domain_shape"] and ModelSet.load(d).by_surface
+    assert "along_normal" not in u1  # re-calibrated without ``along_normal``: the stale block is gone
+    (d / "card.json").write_text(json.dumps(card))
+    _calibrate_default(d, "micro", 0, keep_calibration=True, along_normal=True)
+    an = ModelSet.load(d).along_normal
+    assert an is not None and an.needs_tilt and np.isfinite(an.allowance).any()
 
     del card["uncertainty"]["conditional"]
     (d / "card.json").write_text(json.dumps(card))

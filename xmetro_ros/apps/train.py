@@ -57,7 +57,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e.add_argument("--add-surfaces", action="store_true",
                    help="keep the card's calibration; add the surfaces' per-class U and shape domain")
     e.add_argument("--along-normal", action="store_true",
-                   help="calibrate d and U along the measured normal too (card uncertainty.along_normal)")
+                   help="calibrate d and U along the measured normal too (card uncertainty.along_normal; without "
+                        "it the card gets none, the shipped card's included)")
     e.add_argument("--cover-sources", action="store_true",
                    help="per-class cells cover each sigma source's rows on their own (models/posed)")
     e.set_defaults(func=run_export_default)
@@ -193,6 +194,8 @@ def _calibrate_default(model_dir: Path, profile: str, seed: int, surfaces: bool 
     if keep_calibration:  # calibrate wrote nothing: the card still holds its own block
         card = json.loads((Path(model_dir) / "card.json").read_text())
         extra["uncertainty"] = _with_surface_block(card.get("uncertainty"), block, labels)
+        # the along-normal block is fitted on these rows too: a new one, or none (never the card's old one)
+        extra["uncertainty"].pop("along_normal", None)
         if "along_normal" in block:
             extra["uncertainty"]["along_normal"] = block["along_normal"]
     elif surfaces:
