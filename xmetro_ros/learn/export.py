@@ -76,8 +76,9 @@ def export_pointwise(family: str, estimator: Any, n_features: int) -> onnx.Model
     return model
 
 
-def export_pointnet(module: Any, n_features: int) -> onnx.ModelProto:
-    """ONNX graph of a fitted :class:`~xmetro_ros.learn.pointnet.PointNetReg` (sets (B, n, F) → (B, n, A) mm)."""
+def export_pointnet(module: Any, n_features: int, gemm: bool = True) -> onnx.ModelProto:
+    """ONNX graph of a fitted :class:`~xmetro_ros.learn.pointnet.PointNetReg` (sets (B, n, F) → (B, n, A) mm), with
+    its per-point layers as 2-D Gemm nodes (``gemm``; :mod:`.onnx_gemm`: the same outputs, ~20 % faster)."""
     import torch
 
     module = module.eval()
@@ -91,6 +92,10 @@ def export_pointnet(module: Any, n_features: int) -> onnx.ModelProto:
                       dynamo=False)
     model = onnx.load_from_string(buf.getvalue())
     onnx.checker.check_model(model)
+    if gemm:
+        from .onnx_gemm import pointwise_gemm
+
+        model, _ = pointwise_gemm(model)
     return model
 
 
