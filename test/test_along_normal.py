@@ -436,6 +436,28 @@ def test_fit_rows_reads_normals_densities_and_incidence_from_the_feature_table()
     np.testing.assert_array_equal(grid.allowance, want.allowance)
 
 
+def _factors_reference(an: AlongNormal, surface_class, exposure_ms, normals, incidence):
+    """(m (M,), c (M, 3)) of each row as numpy passes (0.9.2's ``AlongNormal.factors``): m of its class at the
+    exposure's level, c of its incidence bin, class and axis group (NaN: class −1 or uncalibrated, NaN incidence)."""
+    from xmetro_ros.judge.along_normal import axis_group, exposure_level, incidence_bin
+
+    cls = np.asarray(surface_class, np.int64).reshape(-1)
+    level = int(exposure_level(an.exposure_edges, float(exposure_ms)))
+    ok = (cls >= 0) & (cls < an.multipliers.shape[1])
+    k = np.where(ok, cls, 0)
+    a = np.asarray(an.allowance)
+    if a.ndim == 1:
+        c = np.repeat(a[k][:, None], 3, axis=1)
+    else:
+        b, finite = np.zeros(len(cls), np.int64), np.ones(len(cls), bool)
+        if len(a) > 1:
+            inc = np.asarray(incidence, np.float64).reshape(-1)
+            b, finite = incidence_bin(an.incidence_edges_deg, inc), np.isfinite(inc)
+        c = np.take_along_axis(a[b, k], axis_group(normals)[:, :, None], axis=2)[:, :, 0]
+        c = np.where(finite[:, None], c, np.nan)
+    return np.where(ok, an.multipliers[level, k], np.nan), np.where(ok[:, None], c, np.nan)
+
+
 def _rows_reference(an: AlongNormal, normals, noise, cls, exposure, spacings, widen, incidence, tilt):
     """:meth:`AlongNormal.rows` as numpy passes (0.9.2's implementation, with the measured tilt's scale)."""
     from xmetro_ros.judge.along_normal import allowance_scale
@@ -443,7 +465,7 @@ def _rows_reference(an: AlongNormal, normals, noise, cls, exposure, spacings, wi
     n = np.asarray(normals, np.float64)
     n = n / np.linalg.norm(n, axis=1, keepdims=True)
     sigma = np.asarray(noise, np.float64)
-    m, c = an.factors(cls, exposure, n, incidence)
+    m, c = _factors_reference(an, cls, exposure, n, incidence)
     scale = allowance_scale(n, sigma, spacings, an.allowance_model, tilt)
     use = (np.isfinite(sigma) & (sigma > 0) & np.isfinite(m) & np.isfinite(c).all(axis=1)
            & np.isfinite(n).all(axis=1) & np.isfinite(scale).all(axis=1))

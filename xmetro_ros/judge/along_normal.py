@@ -176,30 +176,6 @@ class AlongNormal:
                 "allowance": py(self.allowance), "level": self.level, "allowance_model": self.allowance_model,
                 "incidence_edges_deg": [float(e) for e in self.incidence_edges_deg]}
 
-    def factors(self, surface_class: np.ndarray, exposure_ms: float, normals: np.ndarray,
-                incidence: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(m (M,), c (M, 3)) of rows of the given surface classes (−1: none → NaN) at one exposure (ms), with the
-        rows' unit ``normals`` (M, 3) (which axes carry the deviation) and ``incidence`` (M,) cos of the angle
-        between normal and laser (the Inc feature; needed when c is per incidence bin, NaN → NaN)."""
-        cls = np.asarray(surface_class, np.int64).reshape(-1)
-        level = int(exposure_level(self.exposure_edges, float(exposure_ms)))
-        ok = (cls >= 0) & (cls < self.multipliers.shape[1])
-        k = np.where(ok, cls, 0)
-        a = np.asarray(self.allowance)
-        if a.ndim == 1:
-            c = np.repeat(a[k][:, None], 3, axis=1)
-        else:
-            b: np.ndarray = np.zeros(len(cls), np.int64)  # one incidence bin: no Inc needed
-            finite: np.ndarray = np.ones(len(cls), bool)
-            if len(a) > 1:
-                if incidence is None:
-                    raise ValueError("along_normal: the allowance is per incidence bin; the rows' Inc is needed")
-                inc = np.asarray(incidence, np.float64).reshape(-1)
-                b, finite = incidence_bin(self.incidence_edges_deg, inc), np.isfinite(inc)
-            c = np.take_along_axis(a[b, k], axis_group(normals)[:, :, None], axis=2)[:, :, 0]
-            c = np.where(finite[:, None], c, np.nan)
-        return (np.where(ok, self.multipliers[level, k], np.nan), np.where(ok[:, None], c, np.nan))
-
     @property
     def needs_tilt(self) -> bool:
         """True when the allowance reads the scan's measured tilt noise (``measured_tilt``): :meth:`rows` then
@@ -218,11 +194,9 @@ class AlongNormal:
         n = np.ascontiguousarray(normals, np.float64)
         k = len(n)
         sigma = np.ascontiguousarray(noise, np.float64).reshape(-1)
-        if self.needs_tilt:
-            scale = allowance_scale(n, sigma, spacings_mm, self.allowance_model, tilt)
-        else:  # the grid models' gain is taken on the unit normal
-            unit = n / np.linalg.norm(n, axis=1, keepdims=True)
-            scale = allowance_scale(unit, sigma, spacings_mm, self.allowance_model)
+        # the grid models' gain is taken on the unit normal; the measured tilt needs only the rows' count
+        unit = n if self.needs_tilt else n / np.linalg.norm(n, axis=1, keepdims=True)
+        scale = allowance_scale(unit, sigma, spacings_mm, self.allowance_model, tilt)
         a = np.asarray(self.allowance, np.float64)
         if a.ndim == 1:  # 0.9.0: one c per class for every axis, one incidence bin
             a = np.broadcast_to(a[None, :, None, None], (1, len(a), 3, 2))
@@ -265,7 +239,7 @@ class AlongNormalRows:
         """Outputs y (..., M, 3) mm of these rows as published: "error" → (y·n)·n, "uncertainty" → U' on the used
         rows whose y is finite; the rest unchanged."""
         y = np.asarray(y, np.float64)
-        if y.ndim == 2 and output in ("error", "uncertainty"):  # one scan's rows: the judge's hot path, compiled
+        if y.ndim == 2:  # one scan's rows: the judge's hot path, compiled
             out = np.empty_like(y)
             _carry_kernel(np.ascontiguousarray(y), self.use, self.normals, self.U, output == "error", out)
             return out
