@@ -9,14 +9,7 @@ import pytest
 pytest.importorskip("torch")
 pytest.importorskip("onnx")
 
-
-def _run(model, X: np.ndarray) -> list[np.ndarray]:
-    import onnxruntime as ort
-
-    from xmetro_ros.judge.inference import session_options
-
-    s = ort.InferenceSession(model.SerializeToString(), session_options(1), providers=["CPUExecutionProvider"])
-    return s.run(None, {"X": X})
+from onnx_bits import assert_same_bits
 
 
 @pytest.mark.parametrize(("block1", "block2", "head", "sigma"), [((32,), (64,), (32,), True),
@@ -40,14 +33,7 @@ def test_rewritten_pointnet_gives_the_same_bits(block1, block2, head, sigma) -> 
     n_layers = len(block1) + len(block2) + len(head) + 1 + int(sigma)  # trunk, blocks, head layers, output heads
     assert ops.count("Gemm") == n_layers, ops
     assert ops.count("MatMul") == [n.op_type for n in plain.graph.node].count("MatMul") - n_layers
-    rng = np.random.default_rng(1)
-    for shape in ((128, 50, 14), (3, 1, 14), (1, 7, 14)):
-        X = (rng.normal(size=shape) * 3.0).astype(np.float32)
-        want, got = _run(plain, X), _run(gemm, X)
-        assert len(want) == len(got) == 1 + int(sigma)
-        for a, b in zip(want, got, strict=True):
-            assert a.shape == b.shape
-            np.testing.assert_array_equal(a, b)
+    assert_same_bits(plain, gemm, ((128, 50, 14), (3, 1, 14), (1, 7, 14)), 1 + int(sigma))
 
 
 def test_a_graph_without_per_point_layers_is_unchanged() -> None:

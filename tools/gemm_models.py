@@ -1,6 +1,8 @@
-"""Rewrite model sets' PointNet files with their per-point layers as 2-D Gemm nodes (xmetro_ros/learn/onnx_gemm.py),
-in place, after checking that ONNX Runtime gives the same bits as the original graph on random sets; the card's
-sha256 of each rewritten file is updated. What ``xmetro export-default`` writes since 0.9.3 needs none of it.
+"""Rewrite model sets' PointNet files as ``xmetro export-default`` writes them now, in place: per-point layers as
+2-D Gemm nodes (xmetro_ros/learn/onnx_gemm.py, since 0.9.3) and the input standardisation and output scaling on whole
+sets' rows (xmetro_ros/learn/onnx_broadcast.py, since 0.9.4), after checking that ONNX Runtime gives the same bits as
+the original graph on random sets; the card's sha256 of each rewritten file is updated. A file already written that
+way is left as it is.
 
     python tools/gemm_models.py DIR [DIR ...]   # e.g. xmetro_ros/models/default xmetro_ros/models/posed
 """
@@ -17,6 +19,7 @@ import onnx
 import onnxruntime as ort
 
 from xmetro_ros.judge.inference import session_options
+from xmetro_ros.learn.onnx_broadcast import wide_broadcasts
 from xmetro_ros.learn.onnx_gemm import pointwise_gemm
 
 
@@ -35,9 +38,10 @@ def rewrite_dir(d: Path) -> None:
             continue
         p = d / entry["file"]
         old = onnx.load(str(p))
-        new, count = pointwise_gemm(old)
-        if count == 0:
-            print(f"{p}: no per-point layer to rewrite")
+        new, layers = pointwise_gemm(old)
+        new, steps = wide_broadcasts(new)
+        if layers + steps == 0:
+            print(f"{p}: nothing to rewrite")
             continue
         for shape in ((128, 50, n_features), (3, 1, n_features), (1, 7, n_features)):
             X = rng.normal(size=shape).astype(np.float32) * 3.0
@@ -47,7 +51,8 @@ def rewrite_dir(d: Path) -> None:
         data = new.SerializeToString()
         p.write_bytes(data)
         entry["sha256"] = hashlib.sha256(data).hexdigest()
-        print(f"{p}: {count} layers as Gemm, the same bits on random sets; sha256 {entry['sha256'][:12]}")
+        print(f"{p}: {layers} layers as Gemm, {steps} broadcasts on rows, the same bits on random sets; "
+              f"sha256 {entry['sha256'][:12]}")
     card_path.write_text(json.dumps(card, indent=1, sort_keys=True))
 
 

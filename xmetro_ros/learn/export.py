@@ -76,9 +76,11 @@ def export_pointwise(family: str, estimator: Any, n_features: int) -> onnx.Model
     return model
 
 
-def export_pointnet(module: Any, n_features: int, gemm: bool = True) -> onnx.ModelProto:
+def export_pointnet(module: Any, n_features: int, gemm: bool = True, wide: bool = True) -> onnx.ModelProto:
     """ONNX graph of a fitted :class:`~xmetro_ros.learn.pointnet.PointNetReg` (sets (B, n, F) → (B, n, A) mm), with
-    its per-point layers as 2-D Gemm nodes (``gemm``; :mod:`.onnx_gemm`: the same outputs, ~20 % faster)."""
+    its per-point layers as 2-D Gemm nodes (``gemm``; :mod:`.onnx_gemm`: the same outputs, ~20 % faster) and its
+    input standardisation and output scaling on whole sets' rows (``wide``; :mod:`.onnx_broadcast`: the same outputs,
+    ~25 % faster again)."""
     import torch
 
     module = module.eval()
@@ -96,6 +98,10 @@ def export_pointnet(module: Any, n_features: int, gemm: bool = True) -> onnx.Mod
         from .onnx_gemm import pointwise_gemm
 
         model, _ = pointwise_gemm(model)
+    if wide:
+        from .onnx_broadcast import wide_broadcasts
+
+        model, _ = wide_broadcasts(model)
     return model
 
 
