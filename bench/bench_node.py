@@ -8,7 +8,7 @@
    replace), the same points unorganized, and a ~16,000-point scan; median of ``--reps`` runs, each followed by
    open3d's KD-tree normal estimation alone (hybrid radius 1 mm / 30 nn) on the same valid points, so the ratio is
    measured in the same process, interleaved (goals: organized ≤ 0.2× open3d's normals, unorganized ≤ 1.0×).
-   Threads: the node's default budget (``threads`` 0: every CPU here; numba and ONNX Runtime), OMP / OpenBLAS 2
+   Threads: the node's default budget (``threads`` 0: the CPUs less one; numba and ONNX Runtime), OMP / OpenBLAS 2
    (set before numpy loads). The judge at 1 and 2 threads side by side: bench/bench_threads.py.
 2. (The ONNX-threads comparison that stood here is bench/bench_threads.py's whole-budget one.)
 3. A per-stage profile of the organized judge (each stage timed on its own, median of ``--reps``), pre-processing
